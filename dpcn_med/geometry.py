@@ -1,0 +1,270 @@
+"""Frames, rotations and resampling: the one home of the project's conventions.
+
+Conventions (everything else imports them from here):
+
+* **Volumes.** Torch volumes are ``(B, C, D, H, W)`` = ``(.., z, y, x)``; images are ``(B, C, H, W)`` =
+  ``(.., y, x)``. A numpy array of a SimpleITK image is indexed ``[z, y, x]`` as well.
+* **Voxel coordinates.** A point ``p`` is written ``(x, y, z)`` (``(x, y)`` in 2-D), in voxels, measured from the grid
+  centre, the voxel of index ``size // 2`` along every axis. That is also where ``torch.fft.fftshift`` puts the zero
+  frequency, so rotations of a volume and of its spectrum share one centre.
+* **Rotations.** Active rotation matrices acting on column vectors ``(x, y, z)``. Euler angles are ZYZ:
+  ``R = Rz(alpha) @ Ry(beta) @ Rz(gamma)``, ``alpha, gamma`` in ``[0, 2 pi)``, ``beta`` in ``[0, pi]``.
+* **Resampling direction.** :func:`warp` pulls: ``out(p) = volume(matrix @ p + translation)``. The solver's contract
+  ``fixed(p) ~ moving(scale * rotation @ p + translation)`` therefore reads ``fixed ~ warp(moving, scale * rotation,
+  translation)``: the matrix maps fixed voxels to moving voxels (``moving_from_fixed``), ITK's direction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def grid_centre(size: int) -> int:
+    """Index of the grid centre along an axis of ``size`` voxels (the zero frequency after ``fftshift``)."""
+    return size // 2
+
+
+@dataclass(frozen=True)
+class CanonicalGrid:
+    """The solver's grid in physical space: a cube of ``size^3`` voxels, isotropic ``spacing`` (mm), identity
+    direction, voxel ``size // 2`` at ``centre`` (LPS, mm).
+
+    Both volumes of a pair share ``size`` and ``spacing``, so a rotation of the grid is a rotation in LPS space and a
+    scale is physical; the centres differ (each volume's foreground centre).
+    """
+
+    size: int
+    spacing: float
+    centre: tuple[float, float, float]
+
+    @property
+    def origin(self) -> tuple[float, float, float]:
+        """Physical position (LPS, mm) of voxel ``(0, 0, 0)``, as SimpleITK's ``origin``."""
+        offset = grid_centre(self.size) * self.spacing
+        return tuple(c - offset for c in self.centre)
+
+
+def rotation_z(angle: Tensor) -> Tensor:
+    """Rotation about z by ``angle``: ``(...,)`` radians -> ``(..., 3, 3)``."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    zero, one = torch.zeros_like(angle), torch.ones_like(angle)
+    return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], dim=-1).unflatten(-1, (3, 3))
+
+
+def rotation_y(angle: Tensor) -> Tensor:
+    """Rotation about y by ``angle``: ``(...,)`` radians -> ``(..., 3, 3)``."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    zero, one = torch.zeros_like(angle), torch.ones_like(angle)
+    return torch.stack([c, zero, s, zero, one, zero, -s, zero, c], dim=-1).unflatten(-1, (3, 3))
+
+
+def rotation_2d(angle: Tensor) -> Tensor:
+    """Counter-clockwise rotation of ``(x, y)`` by ``angle``: ``(...,)`` radians -> ``(..., 2, 2)``."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    return torch.stack([c, -s, s, c], dim=-1).unflatten(-1, (2, 2))
+
+
+def euler_zyz_to_matrix(angles: Tensor) -> Tensor:
+    """ZYZ Euler angles to rotation matrices.
+
+    Args:
+        angles: ``(..., 3)`` radians ``(alpha, beta, gamma)``.
+
+    Returns:
+        ``(..., 3, 3)`` active rotations ``Rz(alpha) @ Ry(beta) @ Rz(gamma)``.
+    """
+    alpha, beta, gamma = angles.unbind(-1)
+    return rotation_z(alpha) @ rotation_y(beta) @ rotation_z(gamma)
+
+
+def matrix_to_euler_zyz(rotation: Tensor) -> Tensor:
+    """Inverse of :func:`euler_zyz_to_matrix`.
+
+    Args:
+        rotation: ``(..., 3, 3)`` rotation matrices.
+
+    Returns:
+        ``(..., 3)`` angles, ``alpha, gamma`` in ``[0, 2 pi)`` and ``beta`` in ``[0, pi]``. At the gimbal poles
+        (``beta`` 0 or ``pi``) only ``alpha +- gamma`` is defined; ``gamma`` is then set to 0.
+    """
+    r = rotation
+    beta = torch.acos(r[..., 2, 2].clamp(-1.0, 1.0))
+    sin_beta = torch.sqrt(r[..., 0, 2] ** 2 + r[..., 1, 2] ** 2)
+    regular = sin_beta > 1e-6
+    alpha = torch.where(regular, torch.atan2(r[..., 1, 2], r[..., 0, 2]), torch.atan2(r[..., 1, 0], r[..., 0, 0]))
+    gamma = torch.where(regular, torch.atan2(r[..., 2, 1], -r[..., 2, 0]), torch.zeros_like(beta))
+    # At beta = pi, R = Rz(alpha) diag(-1, 1, -1) Rz(gamma); with gamma = 0, alpha = atan2(-r10, -r00).
+    at_south = (~regular) & (r[..., 2, 2] < 0)
+    alpha = torch.where(at_south, torch.atan2(-r[..., 1, 0], -r[..., 0, 0]), alpha)
+    two_pi = 2 * math.pi
+    return torch.stack([torch.remainder(alpha, two_pi), beta, torch.remainder(gamma, two_pi)], dim=-1)
+
+
+def skew(vector: Tensor) -> Tensor:
+    """Cross-product matrices: ``(..., 3)`` -> ``(..., 3, 3)`` with ``skew(v) @ w = v x w``."""
+    x, y, z = vector.unbind(-1)
+    zero = torch.zeros_like(x)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).unflatten(-1, (3, 3))
+
+
+def axis_angle_to_matrix(rotation_vector: Tensor) -> Tensor:
+    """Rotation vectors (axis times angle in radians) ``(..., 3)`` to matrices ``(..., 3, 3)``."""
+    return torch.linalg.matrix_exp(skew(rotation_vector))
+
+
+def rotation_angle(rotation: Tensor) -> Tensor:
+    """Angle in radians of rotations ``(..., 3, 3)`` -> ``(...,)``, in ``[0, pi]``.
+
+    Uses ``atan2(|R - R^T| / 2, (trace - 1) / 2)``, accurate at small and large angles alike (``acos`` of the trace
+    loses half the digits near 0).
+    """
+    trace = rotation.diagonal(dim1=-2, dim2=-1).sum(-1)
+    antisym = rotation - rotation.transpose(-1, -2)
+    sin_norm = torch.stack([antisym[..., 2, 1], antisym[..., 0, 2], antisym[..., 1, 0]], -1).norm(dim=-1) / 2
+    return torch.atan2(sin_norm, (trace - 1) / 2)
+
+
+def geodesic_distance(rotation_a: Tensor, rotation_b: Tensor) -> Tensor:
+    """Angle in radians of ``rotation_a^T @ rotation_b`` (both ``(..., 3, 3)``) -> ``(...,)``."""
+    return rotation_angle(rotation_a.transpose(-1, -2) @ rotation_b)
+
+
+def half_turns(*, device: torch.device | None = None, dtype: torch.dtype | None = None) -> Tensor:
+    """The identity and the 180-degree rotations about x, y and z: ``(4, 3, 3)``."""
+    return torch.stack(
+        [torch.diag(torch.tensor(d, device=device, dtype=dtype)) for d in
+         ((1.0, 1.0, 1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, 1.0))]
+    )
+
+
+def random_rotation(count: int, generator: torch.Generator | None = None, *, dtype: torch.dtype = torch.float64
+                    ) -> Tensor:
+    """Rotations drawn uniformly (Haar measure) over SO(3): ``(count, 3, 3)``.
+
+    Normalised Gaussian quaternions are uniform on the 3-sphere, hence Haar-uniform on SO(3).
+    """
+    q = torch.randn(count, 4, generator=generator, dtype=torch.float64)
+    w, x, y, z = (q / q.norm(dim=-1, keepdim=True)).unbind(-1)
+    matrix = torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+    ], dim=-1).unflatten(-1, (3, 3))
+    return matrix.to(dtype)
+
+
+def project_to_rotation(matrix: Tensor, iterations: int = 12) -> Tensor:
+    """Nearest rotation to ``matrix`` ``(..., d, d)`` (with positive determinant), by Newton's polar iteration.
+
+    The iteration ``X <- (X + X^-T) / 2`` (Higham 1986) converges quadratically to the orthogonal polar factor. We use
+    it instead of an SVD because the SVD's backward divides by differences of singular values, which vanish exactly
+    where the input is already nearly a rotation: the case of a weighted mean of nearby rotations.
+    """
+    x = matrix
+    for _ in range(iterations):
+        x = 0.5 * (x + torch.linalg.inv(x).transpose(-1, -2))
+    return x
+
+
+def voxel_to_normalized(points: Tensor, sizes: tuple[int, ...]) -> Tensor:
+    """Voxel coordinates from the grid centre to ``grid_sample``'s normalised ones (``align_corners=True``).
+
+    Args:
+        points: ``(..., d)`` coordinates ``(x, y[, z])`` in voxels from the grid centre.
+        sizes: the grid's shape in torch order, ``(D, H, W)`` or ``(H, W)``.
+
+    Returns:
+        ``(..., d)`` normalised coordinates in ``[-1, 1]`` inside the grid.
+    """
+    sizes_xyz = sizes[::-1]
+    centre = points.new_tensor([float(grid_centre(n)) for n in sizes_xyz])
+    scale = points.new_tensor([2.0 / (n - 1) for n in sizes_xyz])
+    return (points + centre) * scale - 1.0
+
+
+def voxel_grid(sizes: tuple[int, ...], *, device: torch.device | None = None, dtype: torch.dtype | None = None
+               ) -> Tensor:
+    """Coordinates of every voxel, from the grid centre.
+
+    Args:
+        sizes: ``(D, H, W)`` or ``(H, W)``.
+
+    Returns:
+        ``(*sizes, d)`` coordinates ``(x, y[, z])`` in voxels.
+    """
+    axes = [torch.arange(n, device=device, dtype=dtype) - grid_centre(n) for n in sizes]
+    mesh = torch.meshgrid(*axes, indexing="ij")
+    return torch.stack(mesh[::-1], dim=-1)
+
+
+def sample(volume: Tensor, points: Tensor) -> Tensor:
+    """Values of a volume at arbitrary voxel coordinates, by (tri)linear interpolation, zero outside.
+
+    Args:
+        volume: ``(B, C, D, H, W)`` or ``(B, C, H, W)``.
+        points: ``(B, *S, d)`` voxel coordinates ``(x, y[, z])`` from the grid centre, any sample shape ``S``.
+
+    Returns:
+        ``(B, C, *S)`` values.
+    """
+    sizes = tuple(volume.shape[2:])
+    dim = len(sizes)
+    batch, sample_shape = points.shape[0], points.shape[1:-1]
+    grid = voxel_to_normalized(points, sizes).reshape(batch, -1, dim)
+    # PyTorch's CPU grid_sample parallelises over the batch only: split the points of each item into one chunk per
+    # thread (measured 1.6x faster on two cores at 128^3) and sample them against a stride-0 copy of the volume.
+    chunks = torch.get_num_threads() if volume.device.type == "cpu" and dim == 3 else 1
+    chunks = chunks if grid.shape[1] % max(chunks, 1) == 0 and batch < chunks else 1
+    grid = grid.reshape(batch * chunks, -1, *([1] * (dim - 1)), dim)
+    source = volume[:, None].expand(batch, chunks, *volume.shape[1:]).reshape(batch * chunks, *volume.shape[1:]) \
+        if chunks > 1 else volume
+    values = F.grid_sample(source, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    values = values.reshape(batch, chunks, volume.shape[1], -1).transpose(1, 2)
+    return values.reshape(batch, volume.shape[1], *sample_shape)
+
+
+def affine_points(sizes: tuple[int, ...], matrix: Tensor, translation: Tensor | None = None) -> Tensor:
+    """Images of every voxel under ``p -> matrix @ p + translation``.
+
+    Args:
+        sizes: grid shape in torch order, ``(D, H, W)`` or ``(H, W)``.
+        matrix: ``(B, *K, d, d)`` acting on ``(x, y[, z])``.
+        translation: ``(B, *K, d)`` voxels, or ``None``.
+
+    Returns:
+        ``(B, *K, *sizes, d)`` voxel coordinates, ready for :func:`sample`.
+    """
+    dim = len(sizes)
+    lead = matrix.shape[:-2]
+    mapped = translation.reshape(*lead, *([1] * dim), dim) if translation is not None else 0.0
+    # Sum of one broadcast term per axis: the same as matrix @ p for every voxel, without materialising p.
+    for axis, n in enumerate(sizes):  # torch axis order; coordinate index dim - 1 - axis
+        ticks = torch.arange(n, device=matrix.device, dtype=matrix.dtype) - grid_centre(n)
+        column = matrix[..., :, dim - 1 - axis]  # (*lead, d)
+        shape = [n if a == axis else 1 for a in range(dim)]
+        mapped = mapped + ticks.reshape(*shape, 1) * column.reshape(*lead, *([1] * dim), dim)
+    return mapped
+
+
+def warp(volume: Tensor, matrix: Tensor, translation: Tensor | None = None) -> Tensor:
+    """Resample a volume under an affine map of voxel coordinates: ``out(p) = volume(matrix @ p + translation)``.
+
+    Args:
+        volume: ``(B, C, D, H, W)`` (or ``(B, C, H, W)`` for 2-D).
+        matrix: ``(B, d, d)`` ``moving_from_fixed`` linear part, acting on ``(x, y[, z])``.
+        translation: ``(B, d)`` voxels, or ``None`` for zero.
+
+    Returns:
+        Volume of the same shape; trilinear (bilinear) interpolation, zero outside the input grid.
+
+    Convention:
+        Pull resampling about the grid centre, as in the module docstring.
+    """
+    points = affine_points(tuple(volume.shape[2:]), matrix.to(volume.dtype),
+                           None if translation is None else translation.to(volume.dtype))
+    return sample(volume, points)

@@ -1,0 +1,144 @@
+"""Conventions of dpcn_med.geometry, pinned with known answers on asymmetric inputs."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from dpcn_med.geometry import (CanonicalGrid, axis_angle_to_matrix, euler_zyz_to_matrix, geodesic_distance,
+                               grid_centre, half_turns, matrix_to_euler_zyz, project_to_rotation, random_rotation,
+                               rotation_angle, rotation_y, rotation_z, sample, voxel_grid, warp)
+
+
+class TestEulerZYZ:
+    def test_matches_product_of_elementary_rotations(self):
+        angles = torch.tensor([0.3, 1.1, -2.0], dtype=torch.float64)
+        expected = rotation_z(angles[0]) @ rotation_y(angles[1]) @ rotation_z(angles[2])
+        torch.testing.assert_close(euler_zyz_to_matrix(angles), expected)
+
+    def test_active_rotation_about_z_turns_x_into_y(self):
+        matrix = euler_zyz_to_matrix(torch.tensor([math.pi / 2, 0.0, 0.0], dtype=torch.float64))
+        torch.testing.assert_close(matrix @ torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64),
+                                   torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+
+    def test_round_trip_of_random_rotations(self):
+        rotation = random_rotation(200, torch.Generator().manual_seed(0))
+        angles = matrix_to_euler_zyz(rotation)
+        assert (angles[:, 0] >= 0).all() and (angles[:, 0] < 2 * math.pi).all()
+        assert (angles[:, 1] >= 0).all() and (angles[:, 1] <= math.pi).all()
+        torch.testing.assert_close(euler_zyz_to_matrix(angles), rotation, atol=1e-9, rtol=0)
+
+    @pytest.mark.parametrize("beta", [0.0, math.pi])
+    def test_round_trip_at_the_gimbal_poles(self, beta):
+        rotation = euler_zyz_to_matrix(torch.tensor([0.7, beta, 0.4], dtype=torch.float64))
+        torch.testing.assert_close(euler_zyz_to_matrix(matrix_to_euler_zyz(rotation)), rotation, atol=1e-9, rtol=0)
+
+
+class TestRotationAngle:
+    def test_known_angles_including_half_turn(self):
+        axis = torch.tensor([0.2, -0.5, 0.8], dtype=torch.float64)
+        axis = axis / axis.norm()
+        for angle in (1e-7, 0.3, 2.0, math.pi - 1e-6):
+            torch.testing.assert_close(rotation_angle(axis_angle_to_matrix(axis * angle)),
+                                       torch.tensor(angle, dtype=torch.float64), atol=1e-9, rtol=0)
+
+    def test_geodesic_distance_is_symmetric(self):
+        a, b = random_rotation(2, torch.Generator().manual_seed(1))
+        torch.testing.assert_close(geodesic_distance(a, b), geodesic_distance(b, a))
+
+
+class TestRandomRotation:
+    def test_orthonormal_and_proper(self):
+        rotation = random_rotation(100, torch.Generator().manual_seed(2))
+        torch.testing.assert_close(rotation @ rotation.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand(
+            100, 3, 3), atol=1e-12, rtol=0)
+        torch.testing.assert_close(torch.linalg.det(rotation), torch.ones(100, dtype=torch.float64))
+
+    def test_haar_uniform_mean_is_zero_and_angles_follow_the_haar_density(self):
+        rotation = random_rotation(20000, torch.Generator().manual_seed(3))
+        assert rotation.mean(0).abs().max() < 0.02
+        # Haar measure: the rotation angle has density (1 - cos w) / pi, so P(w < pi/2) = (pi/2 - 1) / pi.
+        fraction = (rotation_angle(rotation) < math.pi / 2).double().mean().item()
+        assert abs(fraction - (math.pi / 2 - 1) / math.pi) < 0.01
+
+
+class TestHalfTurns:
+    def test_identity_then_half_turns_about_x_y_z(self):
+        turns = half_turns(dtype=torch.float64)
+        assert turns.shape == (4, 3, 3)
+        torch.testing.assert_close(turns[0], torch.eye(3, dtype=torch.float64))
+        for axis in range(3):
+            turn = turns[axis + 1]
+            torch.testing.assert_close(rotation_angle(turn), torch.tensor(math.pi, dtype=torch.float64))
+            assert turn[axis, axis] == 1.0
+
+
+class TestProjectToRotation:
+    def test_returns_nearest_rotation_and_keeps_rotations(self):
+        rotation = random_rotation(5, torch.Generator().manual_seed(4))
+        torch.testing.assert_close(project_to_rotation(rotation), rotation)
+        noisy = rotation + 0.05 * torch.randn(5, 3, 3, generator=torch.Generator().manual_seed(5),
+                                              dtype=torch.float64)
+        u, _, vh = torch.linalg.svd(noisy)
+        torch.testing.assert_close(project_to_rotation(noisy), u @ vh, atol=1e-10, rtol=0)
+
+
+class TestVoxelGrid:
+    def test_centre_voxel_is_the_origin_and_x_runs_along_the_last_axis(self):
+        points = voxel_grid((4, 6, 8), dtype=torch.float64)
+        assert points.shape == (4, 6, 8, 3)
+        torch.testing.assert_close(points[grid_centre(4), grid_centre(6), grid_centre(8)],
+                                   torch.zeros(3, dtype=torch.float64))
+        torch.testing.assert_close(points[2, 3, 5], torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+        torch.testing.assert_close(points[2, 4, 4], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+        torch.testing.assert_close(points[3, 3, 4], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+
+
+def _spot(size: int, where: tuple[int, int, int]) -> torch.Tensor:
+    """A volume with one bright voxel at voxel coordinates ``where`` = (x, y, z) from the centre."""
+    volume = torch.zeros(1, 1, size, size, size, dtype=torch.float64)
+    c = grid_centre(size)
+    volume[0, 0, c + where[2], c + where[1], c + where[0]] = 1.0
+    return volume
+
+
+def _argmax_xyz(volume: torch.Tensor) -> tuple[int, ...]:
+    size = volume.shape[-1]
+    z, y, x = torch.unravel_index(volume.flatten().argmax(), volume.shape[2:])
+    return tuple(int(v) - grid_centre(size) for v in (x, y, z))
+
+
+class TestWarp:
+    def test_pulls_translation(self):
+        # out(p) = volume(p + t): the spot at s appears at s - t.
+        moved = warp(_spot(16, (3, -2, 1)), torch.eye(3, dtype=torch.float64)[None],
+                     torch.tensor([[1.0, 2.0, -3.0]], dtype=torch.float64))
+        assert _argmax_xyz(moved) == (2, -4, 4)
+
+    def test_pulls_rotation_about_the_grid_centre(self):
+        # out(p) = volume(R p): the spot at s appears at R^T s. R turns x into y (90 degrees about z).
+        rotation = rotation_z(torch.tensor(math.pi / 2, dtype=torch.float64))
+        moved = warp(_spot(16, (4, 1, -2)), rotation[None])
+        assert _argmax_xyz(moved) == (1, -4, -2)
+
+    def test_two_dimensional_warp(self):
+        image = torch.zeros(1, 1, 12, 12, dtype=torch.float64)
+        image[0, 0, 6 + 2, 6 + 3] = 1.0  # (x, y) = (3, 2)
+        moved = warp(image, torch.eye(2, dtype=torch.float64)[None], torch.tensor([[1.0, -1.0]], dtype=torch.float64))
+        y, x = torch.unravel_index(moved.flatten().argmax(), (12, 12))
+        assert (int(x) - 6, int(y) - 6) == (2, 3)
+
+    def test_sample_is_trilinear_and_zero_outside(self):
+        volume = torch.arange(4 ** 3, dtype=torch.float64).reshape(1, 1, 4, 4, 4)
+        points = torch.tensor([[[0.5, 0.0, 0.0], [0.0, 0.0, 10.0]]], dtype=torch.float64)
+        values = sample(volume, points)[0, 0]
+        centre = volume[0, 0, 2, 2, 2]
+        torch.testing.assert_close(values, torch.stack([centre + 0.5, torch.tensor(0.0, dtype=torch.float64)]))
+
+
+class TestCanonicalGrid:
+    def test_origin_puts_the_centre_voxel_at_the_centre(self):
+        grid = CanonicalGrid(size=64, spacing=2.5, centre=(10.0, -20.0, 30.0))
+        assert grid.origin == (10.0 - 80.0, -20.0 - 80.0, 30.0 - 80.0)
