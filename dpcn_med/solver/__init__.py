@@ -1,0 +1,24 @@
+"""The DPC solver (DPCN++), pure PyTorch: one module per step of the paper.
+
+=====================  =================================================================
+module                 step
+=====================  =================================================================
+``spectrum``           1. apodised magnitude spectrum (translation invariance)
+``sphere``             2. radial aggregation onto the SOFT sphere (scale invariance)
+``harmonics``          3a. spherical harmonic transform
+``wigner``, ``so3``    3b. SO(3) correlation, peaks, soft arg-max and refinement (rotation)
+``scale``              4. log-radius correlation (scale)
+``translation``        5. phase correlation (translation)
+``phase_correlation``  the N-D phase correlation, soft arg-max and sub-grid peak they share
+``log_polar``          2-D: rotation and scale in one log-polar phase correlation
+``losses``             7. the training losses
+=====================  =================================================================
+"""
+
+from dpcn_med.solver.config import SolverConfig, StageTemperatures, Temperatures
+from dpcn_med.solver.losses import LossWeights, PoseTarget, pose_loss
+from dpcn_med.solver.solve2d import Solve2dResult, solve2d
+from dpcn_med.solver.solve3d import SolveResult, solve
+
+__all__ = ["LossWeights", "PoseTarget", "Solve2dResult", "SolveResult", "SolverConfig", "StageTemperatures",
+           "Temperatures", "pose_loss", "solve", "solve2d"]

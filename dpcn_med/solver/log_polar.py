@@ -1,0 +1,92 @@
+"""2-D DPC, step 2-4 in one: rotation and scale as one shift of the log-polar magnitude spectrum."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from dpcn_med.geometry import sample
+from dpcn_med.solver.phase_correlation import SoftPeak, phase_correlation, refine_peak, soft_argmax
+from dpcn_med.solver.scale import detrend
+
+
+@dataclass
+class LogPolarEstimate:
+    """Result of :func:`log_polar_rotation_scale`.
+
+    Attributes:
+        angle: ``(B,)`` radians in ``[-pi/2, pi/2)``, counter-clockwise; ``angle + pi`` is equally likely (``|FFT|``
+            is point-symmetric).
+        scale: ``(B,)``.
+        peak: soft arg-max over ``(angle, log-radius)`` cells: ``peak.shift`` is ``(log-radius, angle)`` in cells.
+        angle_bin: radians per angular cell.
+        radius_bin: ``log r`` per radial cell.
+    """
+
+    angle: Tensor
+    scale: Tensor
+    peak: SoftPeak
+    angle_bin: float
+    radius_bin: float
+
+
+def log_polar(magnitude: Tensor, angles: int, radii: Tensor) -> Tensor:
+    """Log-magnitude spectrum on a log-polar grid over half a turn.
+
+    Args:
+        magnitude: ``(B, N, N)`` ``fftshift``-ed magnitude spectrum.
+        angles: number of angles ``theta_i = pi i / angles`` (half a turn suffices: ``|FFT|`` is point-symmetric).
+        radii: ``(R,)`` log-spaced radii in frequency cells.
+
+    Returns:
+        ``(B, angles, R)`` ``log |G|(r (cos theta, sin theta))``.
+    """
+    theta = torch.arange(angles, device=magnitude.device, dtype=magnitude.dtype) * (math.pi / angles)
+    directions = torch.stack([theta.cos(), theta.sin()], -1)
+    points = directions[:, None, :] * radii[:, None]  # (A, R, 2)
+    values = sample(magnitude[:, None], points.expand(magnitude.shape[0], *points.shape))[:, 0]
+    floor = 1e-3 * magnitude.flatten(1).mean(-1) + torch.finfo(magnitude.dtype).tiny
+    return torch.log(values + floor[:, None, None])
+
+
+def log_polar_rotation_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, radii: Tensor, angles: int,
+                             temperature: Tensor | float, *, refine: bool, upsample: int) -> LogPolarEstimate:
+    """Rotation (modulo half a turn) and scale between two 2-D magnitude spectra.
+
+    Args:
+        fixed_magnitude: ``(B, N, N)`` ``fftshift``-ed magnitude spectrum of the fixed image.
+        moving_magnitude: ``(B, N, N)`` same for the moving image.
+        radii: ``(R,)`` log-spaced radii.
+        angles: angular samples over half a turn.
+        temperature: softmax temperature.
+        refine: arg-max plus an upsampled-DFT refinement (True) or the soft arg-max (False).
+        upsample: refinement factor.
+
+    Returns:
+        A :class:`LogPolarEstimate`.
+
+    Notes:
+        ``|G_fixed|(r, theta) = mu^-2 |G_moving|(r / mu, theta + angle)``: in ``(theta, log r)`` the fixed log-polar
+        image is the moving one shifted by ``(-angle, log mu)``; the log-radius axis is detrended, tapered and
+        zero-padded (it does not wrap), the angle axis wraps.
+
+    References:
+        Reddy and Chatterji, "An FFT-based technique for translation, rotation, and scale-invariant image
+        registration", IEEE TIP 1996.
+    """
+    samples = radii.shape[0]
+    taper = torch.hann_window(samples, periodic=False, device=radii.device, dtype=radii.dtype)
+    pad = (0, samples)
+    fixed = torch.nn.functional.pad(detrend(log_polar(fixed_magnitude, angles, radii)) * taper, pad)
+    moving = torch.nn.functional.pad(detrend(log_polar(moving_magnitude, angles, radii)) * taper, pad)
+    surface, spectrum = phase_correlation(fixed, moving, 2)
+    peak = soft_argmax(surface, temperature, 2, half_width=1)
+    shift = refine_peak(spectrum, peak.index, tuple(fixed.shape[-2:]), upsample=upsample)[0] if refine else peak.shift
+    angle_bin = math.pi / angles
+    radius_bin = math.log(radii[-1].item() / radii[0].item()) / (samples - 1)
+    angle = torch.remainder(shift[:, 1] * angle_bin + math.pi / 2, math.pi) - math.pi / 2
+    return LogPolarEstimate(angle=angle, scale=torch.exp(-shift[:, 0] * radius_bin), peak=peak,
+                            angle_bin=angle_bin, radius_bin=radius_bin)

@@ -1,0 +1,109 @@
+"""The 2-D DPC solver: rotation over the full turn, scale and translation (4 DoF)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import torch
+from torch import Tensor
+
+from dpcn_med.geometry import rotation_2d, warp
+from dpcn_med.solver.config import SolverConfig, StageTemperatures
+from dpcn_med.solver.log_polar import LogPolarEstimate, log_polar_rotation_scale
+from dpcn_med.solver.spectrum import magnitude_spectrum
+from dpcn_med.solver.sphere import log_radii
+from dpcn_med.solver.translation import TranslationEstimate, phase_translation
+from dpcn_med.solver.validation import check_grids, check_mode
+
+
+@dataclass
+class Solve2dResult:
+    """Pose found by :func:`solve2d`: ``fixed(p) ~ moving(scale * rotation @ p + translation)``.
+
+    Attributes:
+        rotation: ``(B, 2, 2)`` ``moving_from_fixed`` rotation acting on pixel ``(x, y)`` from the grid centre.
+        angle: ``(B,)`` its angle in radians, ``[-pi, pi)``, counter-clockwise.
+        scale: ``(B,)`` (ones in rigid mode).
+        translation: ``(B, 2)`` pixels, order ``(x, y)``.
+        confidence: ``(B,)`` in ``[0, 1]``: softmax mass of the chosen translation peak.
+        log_polar_estimate: the first (global) log-polar pass.
+        translation_estimate: the translation stage of the last pass.
+    """
+
+    rotation: Tensor
+    angle: Tensor
+    scale: Tensor
+    translation: Tensor
+    confidence: Tensor
+    log_polar_estimate: LogPolarEstimate
+    translation_estimate: TranslationEstimate
+
+
+def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: SolverConfig | None = None,
+            temperatures: StageTemperatures | None = None, **options) -> Solve2dResult:
+    """Globally register two images on the same square grid by phase correlation (4 or 3 DoF).
+
+    Args:
+        fixed: ``(B, 1, N, N)`` real grid (torch order y, x), ``N`` even.
+        moving: ``(B, 1, N, N)`` same shape, device and dtype.
+        mode: ``"similarity"`` (rotation, scale, translation) or ``"rigid"`` (scale fixed to 1).
+        config: settings; defaults to :class:`SolverConfig` (the ``log_polar_*`` and ``iterations`` fields).
+        temperatures: ``rotation`` is used for the log-polar correlation, ``translation`` for the translation.
+        **options: overrides of ``config`` fields.
+
+    Returns:
+        A :class:`Solve2dResult` with ``fixed(p) ~ moving(scale * rotation @ p + translation)``.
+
+    Raises:
+        InputError: malformed grids or an unknown mode.
+
+    Notes:
+        Rotation and scale come from one phase correlation of the log-polar magnitude spectra, which is
+        point-symmetric: the angle is known modulo 180 degrees. Both candidates are compensated and
+        phase-correlated for translation; the higher peak wins. Later passes (``iterations``) warp the moving image
+        by the estimate and measure the small residual, where interpolation errors are smallest.
+    """
+    config = replace(config or SolverConfig(), **options)
+    temperatures = temperatures or StageTemperatures()
+    size = check_grids(fixed, moving, 2)
+    check_mode(mode)
+    batch = fixed.shape[0]
+    radii = log_radii(size, config.log_polar_band, config.log_polar_radii, device=fixed.device, dtype=fixed.dtype)
+    fixed_image = fixed[:, 0]
+    fixed_magnitude = magnitude_spectrum(fixed_image, 2, config.taper)
+
+    def translate(linear: Tensor, offset: Tensor) -> TranslationEstimate:
+        return phase_translation(fixed_image, warp(moving, linear, offset)[:, 0], temperatures.translation, dim=2,
+                                 taper=config.taper, refine=config.refine, upsample=config.upsample)
+
+    angle = fixed.new_zeros(batch)
+    scale = fixed.new_ones(batch)
+    translation = fixed.new_zeros(batch, 2)
+    first = None
+    for iteration in range(max(config.iterations, 1)):
+        linear = scale[:, None, None] * rotation_2d(angle)
+        current = warp(moving, linear, translation)[:, 0]  # identity on the first pass
+        estimate = log_polar_rotation_scale(fixed_magnitude, magnitude_spectrum(current, 2, config.taper), radii,
+                                            config.log_polar_angles, temperatures.rotation, refine=config.refine,
+                                            upsample=config.upsample)
+        step_scale = estimate.scale if mode == "similarity" else torch.ones_like(estimate.scale)
+        if iteration == 0:
+            first = estimate
+            twins = torch.stack([estimate.angle, estimate.angle + math.pi], 1)  # (B, 2)
+            heights = []
+            for k in range(2):
+                trial = step_scale[:, None, None] * rotation_2d(twins[:, k])
+                heights.append(translate(trial, None).height)
+            step_angle = twins.gather(1, torch.stack(heights, 1).argmax(1, keepdim=True))[:, 0]
+        else:
+            step_angle = estimate.angle
+        # Compose the residual: moving(A (A_r p + t_r) + t) with t_r = 0 here; translation is re-measured below.
+        angle = angle + step_angle
+        scale = scale * step_scale
+        linear = scale[:, None, None] * rotation_2d(angle)
+        shift = translate(linear, None)
+        translation = (linear @ shift.shift[..., None])[..., 0]
+    angle = torch.remainder(angle + math.pi, 2 * math.pi) - math.pi
+    return Solve2dResult(rotation=rotation_2d(angle), angle=angle, scale=scale, translation=translation,
+                         confidence=shift.peak.mass, log_polar_estimate=first, translation_estimate=shift)

@@ -1,0 +1,136 @@
+"""Step 2 of DPC: radial aggregation of a magnitude spectrum onto the SOFT sphere grid (scale invariance).
+
+The grid is SOFT's variant of Driscoll-Healy (ducc0's "F1"): ``theta_j = pi (2j + 1) / (4B)``,
+``phi_k = 2 pi k / (2B)``, ``j, k < 2B``; it excludes the poles, and the quadrature weights below belong to it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from dpcn_med.geometry import sample
+
+
+def sphere_angles(bandwidth: int, *, device: torch.device | None = None, dtype: torch.dtype | None = None
+                  ) -> tuple[Tensor, Tensor]:
+    """``(theta, phi)`` of the SOFT grid, each ``(2B,)`` radians."""
+    index = torch.arange(2 * bandwidth, device=device, dtype=dtype)
+    return math.pi * (2 * index + 1) / (4 * bandwidth), 2 * math.pi * index / (2 * bandwidth)
+
+
+def sphere_directions(bandwidth: int, *, device: torch.device | None = None, dtype: torch.dtype | None = None
+                      ) -> Tensor:
+    """Unit vectors ``(x, y, z)`` of the grid: ``(2B, 2B, 3)`` indexed ``[theta, phi]``."""
+    theta, phi = sphere_angles(bandwidth, device=device, dtype=dtype)
+    theta, phi = theta[:, None], phi[None, :]
+    return torch.stack(torch.broadcast_tensors(theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()), -1)
+
+
+def quadrature_weights(bandwidth: int, *, device: torch.device | None = None, dtype: torch.dtype | None = None
+                       ) -> Tensor:
+    """SOFT quadrature weights in ``theta``: ``(2B,)``, summing to 2 (the integral of ``sin theta``).
+
+    ``w_j = (2 / B) sin(theta_j) sum_{k < B} sin((2k + 1) theta_j) / (2k + 1)`` (Kostelec and Rockmore 2008, eq. 2.13;
+    exact for band-limit ``B`` together with the ``2 pi / 2B`` step in ``phi``).
+    """
+    theta, _ = sphere_angles(bandwidth, device=device, dtype=torch.float64)
+    odd = 2 * torch.arange(bandwidth, device=device, dtype=torch.float64) + 1
+    weights = (2.0 / bandwidth) * theta.sin() * ((odd * theta[:, None]).sin() / odd).sum(-1)
+    return weights.to(dtype or torch.get_default_dtype())
+
+
+def log_radii(size: int, band: tuple[float, float], count: int, *, device: torch.device | None = None,
+              dtype: torch.dtype | None = None) -> Tensor:
+    """``count`` radii evenly spaced in ``log r`` over ``band`` (fractions of the Nyquist radius ``size / 2``): ``(R,)``."""
+    nyquist = size / 2
+    return torch.linspace(math.log(band[0] * nyquist), math.log(band[1] * nyquist), count, device=device,
+                          dtype=dtype).exp()
+
+
+def radial_profiles(magnitude: Tensor, directions: Tensor, radii: Tensor, *, log_magnitude: bool = True) -> Tensor:
+    """Magnitude spectrum sampled along rays: ``f(|G|(r u))`` for every direction ``u`` and radius ``r``.
+
+    Args:
+        magnitude: ``(B, N, N, N)`` ``fftshift``-ed magnitude spectrum.
+        directions: ``(B, *S, 3)`` unit vectors ``(x, y, z)``.
+        radii: ``(R,)`` radii in frequency cells (cycles per grid), as from :func:`log_radii`.
+        log_magnitude: return ``log |G|`` (floored at a small fraction of the mean) rather than ``|G|``.
+
+    Returns:
+        ``(B, *S, R)``, trilinear interpolation.
+    """
+    points = directions[..., None, :] * radii[:, None]  # (B, *S, R, 3)
+    values = sample(magnitude[:, None], points)[:, 0]
+    if not log_magnitude:
+        return values
+    floor = 1e-3 * magnitude.flatten(1).mean(-1) + torch.finfo(magnitude.dtype).tiny
+    return torch.log(values + floor.reshape(-1, *([1] * (values.dim() - 1))))
+
+
+def to_sphere(magnitude: Tensor, directions: Tensor, radii: Tensor, *, log_magnitude: bool = True) -> Tensor:
+    """Radial aggregation of a magnitude spectrum onto directions: ``s(u) = mean_r f(|G|(r u))``.
+
+    Args:
+        magnitude: ``(B, N, N, N)`` ``fftshift``-ed magnitude spectrum.
+        directions: ``(B, *S, 3)`` unit vectors (for instance :func:`sphere_directions`, or rotated ones).
+        radii: ``(R,)`` log-spaced radii: the band-pass.
+        log_magnitude: aggregate ``log |G|`` (True) or ``|G|``.
+
+    Returns:
+        ``(B, *S)`` values on the sphere.
+
+    Notes:
+        With ``|G1(k)| = mu^-3 |G2(R k / mu)|``, ``log |G1|`` along ``u`` is ``log |G2|`` along ``R u`` shifted by
+        ``log mu`` in ``log r`` and offset by ``-3 log mu``; averaging over log-spaced radii therefore makes
+        ``s1(u) = s2(R u)`` up to a constant and the ends of the band, which normalisation removes.
+    """
+    return radial_profiles(magnitude, directions, radii, log_magnitude=log_magnitude).mean(-1)
+
+
+def normalize_sphere(sphere: Tensor, weights: Tensor) -> Tensor:
+    """Zero weighted mean, unit weighted norm: ``(B, 2B, 2B)`` -> same. A constant sphere becomes zeros, not NaN.
+
+    Args:
+        sphere: ``(B, 2B, 2B)`` values on the grid, ``[theta, phi]``.
+        weights: ``(2B,)`` :func:`quadrature_weights`.
+    """
+    w = weights[:, None] / (weights.sum() * sphere.shape[-1])
+    centred = sphere - (sphere * w).sum((-2, -1), keepdim=True)
+    norm = ((centred ** 2) * w).sum((-2, -1), keepdim=True).sqrt()
+    return centred / (norm + torch.finfo(sphere.dtype).eps)
+
+
+def sample_sphere(sphere: Tensor, directions: Tensor) -> Tensor:
+    """Bilinear interpolation of grid values at arbitrary directions.
+
+    Args:
+        sphere: ``(B, 2b, 2b)`` values on the SOFT grid of bandwidth ``b``, ``[theta, phi]``.
+        directions: ``(B, *S, 3)`` unit vectors ``(x, y, z)`` (not renormalised).
+
+    Returns:
+        ``(B, *S)``.
+
+    Notes:
+        ``phi`` wraps; beyond the first and last ``theta`` rows the grid continues over the pole, where the row is
+        the same row shifted by half a turn in ``phi``, so the padding below makes the interpolation seamless.
+    """
+    rows, cols = sphere.shape[-2:]
+    half = cols // 2
+    north = sphere[:, :1].roll(half, dims=-1)
+    south = sphere[:, -1:].roll(half, dims=-1)
+    padded = torch.cat([north, sphere, south], dim=1)
+    padded = torch.cat([padded[..., -1:], padded, padded[..., :1]], dim=-1)  # (B, 2b + 2, 2b + 2)
+    x, y, z = directions.unbind(-1)
+    theta = torch.acos(z.clamp(-1.0, 1.0))
+    phi = torch.remainder(torch.atan2(y, x), 2 * math.pi)
+    row = theta * rows / math.pi - 0.5 + 1.0  # +1 for the padding row
+    col = phi * cols / (2 * math.pi) + 1.0
+    grid = torch.stack([2 * col / (cols + 1) - 1, 2 * row / (rows + 1) - 1], -1)
+    batch, sample_shape = directions.shape[0], directions.shape[1:-1]
+    values = F.grid_sample(padded[:, None], grid.reshape(batch, -1, 1, 2), mode="bilinear",
+                           padding_mode="border", align_corners=True)
+    return values.reshape(batch, *sample_shape)

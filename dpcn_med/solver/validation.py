@@ -1,0 +1,66 @@
+"""Checks of the solver's inputs, with messages that name the problem and the fix."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from dpcn_med.errors import InputError
+
+MAX_BANDWIDTH = 128
+
+
+def check_grids(fixed: Tensor, moving: Tensor, dim: int) -> int:
+    """Validate a pair of solver grids and return their size ``N``.
+
+    Args:
+        fixed: ``(B, 1, N, N, N)`` (``dim = 3``) or ``(B, 1, N, N)`` (``dim = 2``).
+        moving: same shape, device and dtype.
+        dim: 2 or 3.
+
+    Raises:
+        InputError: wrong rank, channels, non-square or odd size, mismatch, non-float dtype, NaN or Inf.
+    """
+    layout = "(B, 1, N, N, N)" if dim == 3 else "(B, 1, N, N)"
+    other = "solve2d" if dim == 3 else "solve"
+    for name, grid in (("fixed", fixed), ("moving", moving)):
+        if not isinstance(grid, Tensor):
+            raise InputError(f"{name} must be a torch.Tensor of shape {layout}, got {type(grid).__name__}")
+        if grid.dim() != dim + 2:
+            raise InputError(f"{name} has shape {tuple(grid.shape)}; expected {layout} (for the other dimension use "
+                             f"{other})")
+        if grid.shape[1] != 1:
+            raise InputError(f"{name} has {grid.shape[1]} channels (shape {tuple(grid.shape)}); expected 1")
+        sizes = tuple(grid.shape[2:])
+        if len(set(sizes)) != 1:
+            raise InputError(f"{name} grid is not cubic: spatial shape {sizes}; resample it onto an N^{dim} grid")
+        if sizes[0] % 2 or sizes[0] < 8:
+            raise InputError(f"{name} grid size {sizes[0]} must be even and at least 8 (N = 2B)")
+        if grid.dtype not in (torch.float32, torch.float64):
+            raise InputError(f"{name} has dtype {grid.dtype}; expected torch.float32 or torch.float64")
+        if not torch.isfinite(grid).all():
+            raise InputError(f"{name} contains NaN or Inf values; replace them (e.g. torch.nan_to_num) first")
+    if fixed.shape != moving.shape:
+        raise InputError(f"fixed and moving shapes differ: {tuple(fixed.shape)} vs {tuple(moving.shape)}")
+    if fixed.dtype != moving.dtype or fixed.device != moving.device:
+        raise InputError(f"fixed ({fixed.dtype}, {fixed.device}) and moving ({moving.dtype}, {moving.device}) must "
+                         "share dtype and device")
+    return fixed.shape[-1]
+
+
+def check_bandwidth(bandwidth: int | None, size: int) -> int:
+    """The bandwidth to use for grids of size ``size``: ``size // 2`` by default, else ``4 <= B <= size // 2, 128``."""
+    if bandwidth is None:
+        bandwidth = size // 2
+    top = min(size // 2, MAX_BANDWIDTH)
+    if not isinstance(bandwidth, int) or not 4 <= bandwidth <= top:
+        raise InputError(f"bandwidth {bandwidth!r} is out of range for grids of size {size}: use an integer in "
+                         f"[4, {top}]")
+    return bandwidth
+
+
+def check_mode(mode: str) -> str:
+    """``'similarity'`` or ``'rigid'``."""
+    if mode not in ("similarity", "rigid"):
+        raise InputError(f"mode {mode!r} is not supported; use 'similarity' (with scale) or 'rigid'")
+    return mode

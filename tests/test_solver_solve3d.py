@@ -1,0 +1,155 @@
+"""The public 3-D entry point: validation, degenerate inputs, recovery on real anatomy, gradients, devices."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dpcn_med.errors import InputError
+from dpcn_med.solver import SolverConfig, StageTemperatures, solve
+from tests.conftest import pose_errors, random_poses, volume_grid
+
+
+class TestValidation:
+    @pytest.mark.parametrize("fixed_shape,moving_shape,message", [
+        ((1, 1, 16, 16), (1, 1, 16, 16), r"expected \(B, 1, N, N, N\) \(for the other dimension use solve2d\)"),
+        ((1, 2, 16, 16, 16), (1, 2, 16, 16, 16), "2 channels"),
+        ((1, 1, 16, 16, 12), (1, 1, 16, 16, 12), "not cubic"),
+        ((1, 1, 15, 15, 15), (1, 1, 15, 15, 15), "must be even"),
+        ((1, 1, 16, 16, 16), (1, 1, 32, 32, 32), "shapes differ"),
+    ])
+    def test_malformed_grids(self, fixed_shape, moving_shape, message):
+        with pytest.raises(InputError, match=message):
+            solve(torch.zeros(fixed_shape), torch.zeros(moving_shape))
+
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+    def test_non_finite_values_name_the_input(self, bad):
+        moving = torch.zeros(1, 1, 16, 16, 16)
+        moving[0, 0, 3, 4, 5] = bad
+        with pytest.raises(InputError, match="moving contains NaN or Inf"):
+            solve(torch.zeros(1, 1, 16, 16, 16), moving)
+
+    def test_integer_dtype(self):
+        with pytest.raises(InputError, match="dtype torch.int64"):
+            solve(torch.zeros(1, 1, 16, 16, 16, dtype=torch.long), torch.zeros(1, 1, 16, 16, 16, dtype=torch.long))
+
+    @pytest.mark.parametrize("bandwidth", [2, 9, 64, 3.5])
+    def test_bandwidth_out_of_range(self, bandwidth):
+        with pytest.raises(InputError, match=r"bandwidth .* is out of range for grids of size 16: use an integer in "
+                                             r"\[4, 8\]"):
+            solve(torch.zeros(1, 1, 16, 16, 16), torch.zeros(1, 1, 16, 16, 16), bandwidth=bandwidth)
+
+    def test_unknown_mode(self):
+        with pytest.raises(InputError, match="mode 'affine' is not supported"):
+            solve(torch.zeros(1, 1, 16, 16, 16), torch.zeros(1, 1, 16, 16, 16), "affine")
+
+    def test_input_errors_are_value_errors(self):
+        assert issubclass(InputError, ValueError)
+
+
+class TestDegenerateInputs:
+    @pytest.mark.parametrize("fixed_value,moving_value", [(0.0, 0.0), (5.0, 5.0), (1.0, 0.0)])
+    @pytest.mark.parametrize("refine", [True, False])
+    def test_constant_or_empty_grids_give_low_confidence_and_no_nan(self, fixed_value, moving_value, refine):
+        fixed = torch.full((1, 1, 32, 32, 32), fixed_value)
+        moving = torch.full((1, 1, 32, 32, 32), moving_value)
+        result = solve(fixed, moving, refine=refine)
+        for value in (result.rotation, result.scale, result.translation, result.confidence, result.rotation_log_prob):
+            assert torch.isfinite(value).all()
+        assert result.confidence.item() < 0.01
+        assert result.scale.item() == pytest.approx(1.0)
+        torch.testing.assert_close(result.translation, torch.zeros(1, 3))
+
+
+def _success(name: str, bandwidth: int, count: int, seed: int, mode: str, limits: tuple[float, float, float],
+             dtype: torch.dtype = torch.float32) -> list[tuple[float, float, float]]:
+    size = 2 * bandwidth
+    fixed = volume_grid(name, size, dtype)
+    failures = []
+    for pose in random_poses(count, size, seed, similarity=mode == "similarity"):
+        result = solve(fixed, pose.moving_from(fixed), mode)
+        errors = pose_errors(result.rotation[0], result.scale[0], result.translation[0], pose)
+        if not (errors[0] < limits[0] and errors[1] < limits[1] and errors[2] < limits[2]):
+            failures.append(errors)
+        assert 0.0 <= result.confidence.item() <= 1.0
+    return failures
+
+
+class TestRecoveryOnRealAnatomy:
+    """Learning-free recovery of random poses (rotation uniform over SO(3)); the benchmark runs 100 poses."""
+
+    @pytest.mark.parametrize("mode", ["similarity", "rigid"])
+    @pytest.mark.parametrize("name", ["seg3d/MR.nii.gz", "mridir/mridir_t2_1p5mm.nii.gz"])
+    def test_bandwidth_32_within_5_degrees_2_voxels_3_percent(self, name, mode):
+        assert _success(name, 32, 6, seed=11, mode=mode, limits=(5.0, 2.0, 0.03)) == []
+
+    def test_bandwidth_64_within_2_5_degrees_1_voxel_2_percent(self):
+        assert _success("seg3d/MR.nii.gz", 64, 3, seed=12, mode="similarity", limits=(2.5, 1.0, 0.02)) == []
+
+    def test_symmetric_template_without_shared_data(self, dtype):
+        # The MNI template is exactly left-right symmetric: the half-turn twins tie on the sphere.
+        assert _success("mni", 32, 3, seed=13, mode="similarity", limits=(5.0, 2.0, 0.03), dtype=dtype) == []
+
+    def test_without_half_turns_the_mirror_twin_wins_sometimes(self):
+        size = 64
+        fixed = volume_grid("mni", size)
+        wrong = 0
+        for pose in random_poses(6, size, seed=14):
+            result = solve(fixed, pose.moving_from(fixed), half_turns=False, peaks=1)
+            wrong += pose_errors(result.rotation[0], result.scale[0], result.translation[0], pose)[0] > 90
+        assert wrong > 0  # the ambiguity is real, so candidate resolution is what makes "any pose" true
+
+
+class TestBatch:
+    def test_batch_equals_items_solved_alone(self):
+        size = 32
+        fixed = volume_grid("mni", size)
+        poses = random_poses(2, size, seed=15)
+        moving = torch.cat([pose.moving_from(fixed) for pose in poses])
+        together = solve(fixed.expand(2, -1, -1, -1, -1), moving)
+        for index in range(2):
+            alone = solve(fixed, moving[index:index + 1])
+            torch.testing.assert_close(together.rotation[index], alone.rotation[0], atol=1e-4, rtol=0)
+            torch.testing.assert_close(together.translation[index], alone.translation[0], atol=1e-3, rtol=0)
+
+
+class TestGradients:
+    def test_gradcheck_whole_solver_wrt_both_inputs_and_the_temperatures(self):
+        generator = torch.Generator().manual_seed(16)
+        fixed = torch.nn.functional.avg_pool3d(torch.randn(1, 1, 16, 16, 16, generator=generator,
+                                                           dtype=torch.float64), 3, 1, 1)
+        pose = random_poses(1, 16, seed=17)[0]
+        moving = pose.moving_from(fixed)
+        temperatures = [torch.tensor(0.05, dtype=torch.float64, requires_grad=True) for _ in range(3)]
+
+        def pose_of(f, m, rotation_t, scale_t, translation_t):
+            result = solve(f, m, refine=False, temperatures=StageTemperatures(rotation_t, scale_t, translation_t))
+            return result.rotation, result.scale, result.translation, result.confidence
+
+        assert torch.autograd.gradcheck(pose_of, (fixed.requires_grad_(), moving.requires_grad_(), *temperatures),
+                                        fast_mode=True)
+
+    def test_inference_mode_is_not_worse_than_the_soft_mode(self):
+        size = 64
+        fixed = volume_grid("mni", size)
+        pose = random_poses(1, size, seed=18)[0]
+        moving = pose.moving_from(fixed)
+        refined = solve(fixed, moving)
+        soft = solve(fixed, moving, config=SolverConfig(refine=False))
+        refined_error = pose_errors(refined.rotation[0], refined.scale[0], refined.translation[0], pose)
+        soft_error = pose_errors(soft.rotation[0], soft.scale[0], soft.translation[0], pose)
+        assert refined_error[0] <= soft_error[0] + 0.1 and soft_error[0] < 5.0
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+class TestCuda:
+    def test_same_pose_on_cuda_as_on_cpu(self):
+        fixed = volume_grid("mni", 64)
+        pose = random_poses(1, 64, seed=19)[0]
+        moving = pose.moving_from(fixed)
+        on_cpu = solve(fixed, moving)
+        on_gpu = solve(fixed.cuda(), moving.cuda())
+        assert on_gpu.rotation.device.type == "cuda"
+        torch.testing.assert_close(on_gpu.rotation.cpu(), on_cpu.rotation, atol=1e-3, rtol=0)
+        torch.testing.assert_close(on_gpu.translation.cpu(), on_cpu.translation, atol=2e-2, rtol=0)
