@@ -86,3 +86,18 @@ def solver_grid(image: sitk.Image, size: int, *, fill: float = 0.5, dtype: torch
     """Normalise and resample an image onto its canonical cube: ``((1, 1, N, N, N) tensor, grid)``."""
     grid = canonical_grid(image, size, fill=fill)
     return to_tensor(resample_to_grid(normalize_intensity(image), grid), dtype=dtype), grid
+
+
+def solver_slice(image: sitk.Image, size: int, *, fill: float = 0.55, dtype: torch.dtype = torch.float32) -> Tensor:
+    """The axial slice through the foreground centre on a square grid: ``(1, 1, size, size)`` (order y, x).
+
+    The slice is normalised like :func:`solver_grid` and lies in the canonical cube's central z-plane, so the
+    foreground spans about ``fill`` of the side.
+    """
+    normalised = normalize_intensity(image)
+    grid = canonical_grid(normalised, size, fill=fill)
+    reference = sitk.Image([size, size, 1], sitk.sitkFloat32)
+    reference.SetSpacing([grid.spacing] * 3)
+    reference.SetOrigin((*grid.origin[:2], grid.centre[2]))
+    axial = sitk.Resample(normalised, reference, sitk.Transform(), sitk.sitkLinear, 0.0, sitk.sitkFloat32)
+    return torch.from_numpy(sitk.GetArrayFromImage(axial)[0].astype(np.float64)).to(dtype)[None, None]

@@ -7,9 +7,23 @@ import math
 import pytest
 import torch
 
-from dpcn_med.geometry import (CanonicalGrid, axis_angle_to_matrix, euler_zyz_to_matrix, geodesic_distance,
-                               grid_centre, half_turns, matrix_to_euler_zyz, project_to_rotation, random_rotation,
-                               rotation_angle, rotation_y, rotation_z, sample, voxel_grid, warp)
+from dpcn_med.geometry import (
+    CanonicalGrid,
+    axis_angle_to_matrix,
+    euler_zyz_to_matrix,
+    geodesic_distance,
+    grid_centre,
+    half_turns,
+    matrix_to_euler_zyz,
+    project_to_rotation,
+    random_rotation,
+    rotation_angle,
+    rotation_y,
+    rotation_z,
+    sample,
+    voxel_grid,
+    warp,
+)
 
 
 class TestEulerZYZ:

@@ -8,8 +8,14 @@ import SimpleITK as sitk
 
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import grid_centre
-from dpcn_med.preprocess import (canonical_grid, foreground_box, normalize_intensity, resample_to_grid, solver_grid,
-                                 to_tensor)
+from dpcn_med.preprocess import (
+    canonical_grid,
+    foreground_box,
+    normalize_intensity,
+    resample_to_grid,
+    solver_grid,
+    to_tensor,
+)
 
 
 def _box_image() -> sitk.Image:

@@ -11,7 +11,8 @@ from dpcn_med.geometry import rotation_2d
 from dpcn_med.solver.log_polar import log_polar, log_polar_rotation_scale
 from dpcn_med.solver.spectrum import magnitude_spectrum
 from dpcn_med.solver.sphere import log_radii
-from tests.conftest import Pose, axial_slice
+from dpcn_med.synth import Pose
+from tests.conftest import axial_slice
 
 
 class TestLogPolar:
@@ -31,7 +32,7 @@ class TestLogPolarRotationScale:
         moving = Pose(rotation, scale, torch.tensor([5.0, -3.0], dtype=torch.float64)).moving_from(fixed)
         estimate = log_polar_rotation_scale(
             magnitude_spectrum(fixed[:, 0], 2, 0.25), magnitude_spectrum(moving[:, 0], 2, 0.25),
-            log_radii(256, (0.03, 0.9), 256, dtype=torch.float64), 360, 0.01, refine=True, upsample=16)
+            (0.03, 0.9), 256, 360, 0.01, refine=True, upsample=16)
         difference = (math.degrees(estimate.angle.item()) - angle + 90) % 180 - 90
         assert abs(difference) < 0.5
         assert estimate.scale.item() == pytest.approx(scale, rel=0.005)

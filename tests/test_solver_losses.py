@@ -11,7 +11,8 @@ from dpcn_med.geometry import axis_angle_to_matrix, random_rotation
 from dpcn_med.solver import LossWeights, PoseTarget, StageTemperatures, Temperatures, pose_loss, solve
 from dpcn_med.solver.losses import rotation_kl, shift_kl
 from dpcn_med.solver.so3 import grid_rotations, so3_log_prob
-from tests.conftest import random_poses, volume_grid
+from dpcn_med.synth import random_poses
+from tests.conftest import volume_grid
 
 
 class TestShiftKL:

@@ -8,8 +8,8 @@ import torch
 from dpcn_med.geometry import random_rotation
 from dpcn_med.solver.scale import detrend, log_polar_scale
 from dpcn_med.solver.spectrum import magnitude_spectrum
-from dpcn_med.solver.sphere import log_radii
-from tests.conftest import Pose, volume_grid
+from dpcn_med.synth import Pose
+from tests.conftest import volume_grid
 
 
 class TestDetrend:
@@ -22,11 +22,9 @@ class TestDetrend:
 
 def _scale_of(fixed: torch.Tensor, moving: torch.Tensor, rotation: torch.Tensor, refine: bool = True,
               temperature: torch.Tensor | float = 0.02) -> torch.Tensor:
-    size = fixed.shape[-1]
-    radii = log_radii(size, (0.05, 0.8), 64, dtype=fixed.dtype)
     estimate = log_polar_scale(magnitude_spectrum(fixed[:, 0], 3, 0.25), magnitude_spectrum(moving[:, 0], 3, 0.25),
-                               rotation[None, None].to(fixed.dtype), radii, temperature, directions_bandwidth=8,
-                               max_scale=2.0, refine=refine, upsample=16)
+                               rotation[None, None].to(fixed.dtype), (0.05, 0.8), 64, temperature,
+                               directions_bandwidth=8, max_scale=2.0, refine=refine, upsample=16)
     return estimate.scale[0, 0]
 
 

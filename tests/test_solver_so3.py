@@ -7,18 +7,35 @@ import math
 import pytest
 import torch
 
-from dpcn_med.geometry import (axis_angle_to_matrix, euler_zyz_to_matrix, geodesic_distance, matrix_to_euler_zyz,
-                               random_rotation)
+from dpcn_med.geometry import (
+    axis_angle_to_matrix,
+    euler_zyz_to_matrix,
+    geodesic_distance,
+    matrix_to_euler_zyz,
+    random_rotation,
+)
 from dpcn_med.solver.harmonics import even_degrees, isht, sht
-from dpcn_med.solver.so3 import (deduplicate, euler_grid, grid_rotations, refine_rotation, so3_correlation,
-                                 so3_log_prob, so3_peaks, soft_argmax_so3, sphere_correlation)
+from dpcn_med.solver.so3 import (
+    deduplicate,
+    euler_grid,
+    grid_rotations,
+    refine_rotation,
+    so3_correlation,
+    so3_log_prob,
+    so3_peaks,
+    soft_argmax_so3,
+    sphere_correlation,
+)
 from dpcn_med.solver.sphere import quadrature_weights, sphere_directions
 from dpcn_med.solver.wigner import wigner_d
 from tests.test_solver_harmonics import _random_real_coefficients
 
 
 def _rotate_coefficients(coeffs: torch.Tensor, degrees: tuple[int, ...], rotation: torch.Tensor) -> torch.Tensor:
-    """Coefficients of ``L_R f`` (``(L_R f)(x) = f(R^T x)``): ``sum_n D^l_mn(R) S_l^n``, ``D = e^-im a d(b) e^-in g``."""
+    """Coefficients of ``L_R f``, ``(L_R f)(x) = f(R^T x)``: ``sum_n D^l_mn(R) S_l^n``.
+
+    ``D^l_mn = exp(-i m alpha) d^l_mn(beta) exp(-i n gamma)``, the convention of :mod:`dpcn_med.solver.wigner`.
+    """
     alpha, beta, gamma = matrix_to_euler_zyz(rotation).tolist()
     top = max(degrees)
     orders = torch.arange(-top, top + 1, dtype=torch.float64)

@@ -10,7 +10,8 @@ import torch
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import rotation_2d
 from dpcn_med.solver import StageTemperatures, solve2d
-from tests.conftest import Pose, axial_slice, pose_errors, random_poses
+from dpcn_med.synth import Pose, random_poses
+from tests.conftest import axial_slice
 
 
 class TestValidation:
@@ -28,7 +29,7 @@ def _failures(name: str, count: int, seed: int, mode: str = "similarity") -> lis
     failures = []
     for pose in random_poses(count, 256, seed, similarity=mode == "similarity", dim=2, max_shift=50.0):
         result = solve2d(fixed, pose.moving_from(fixed), mode)
-        errors = pose_errors(result.rotation[0], result.scale[0], result.translation[0], pose)
+        errors = pose.errors(result.rotation[0], result.scale[0], result.translation[0])
         if not (errors[0] < 1.0 and errors[1] < 1.0 and errors[2] < 0.01):
             failures.append(errors)
     return failures
@@ -50,7 +51,7 @@ class TestRecovery:
         pose = Pose(rotation_2d(torch.tensor(math.radians(angle), dtype=torch.float64)), 1.05,
                     torch.tensor([10.0, -20.0], dtype=torch.float64))
         result = solve2d(fixed, pose.moving_from(fixed))
-        assert pose_errors(result.rotation[0], result.scale[0], result.translation[0], pose)[0] < 1.0
+        assert pose.errors(result.rotation[0], result.scale[0], result.translation[0])[0] < 1.0
         assert result.confidence.item() > 0.5
 
 

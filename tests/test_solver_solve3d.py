@@ -7,7 +7,8 @@ import torch
 
 from dpcn_med.errors import InputError
 from dpcn_med.solver import SolverConfig, StageTemperatures, solve
-from tests.conftest import pose_errors, random_poses, volume_grid
+from dpcn_med.synth import random_poses
+from tests.conftest import volume_grid
 
 
 class TestValidation:
@@ -68,7 +69,7 @@ def _success(name: str, bandwidth: int, count: int, seed: int, mode: str, limits
     failures = []
     for pose in random_poses(count, size, seed, similarity=mode == "similarity"):
         result = solve(fixed, pose.moving_from(fixed), mode)
-        errors = pose_errors(result.rotation[0], result.scale[0], result.translation[0], pose)
+        errors = pose.errors(result.rotation[0], result.scale[0], result.translation[0])
         if not (errors[0] < limits[0] and errors[1] < limits[1] and errors[2] < limits[2]):
             failures.append(errors)
         assert 0.0 <= result.confidence.item() <= 1.0
@@ -96,7 +97,7 @@ class TestRecoveryOnRealAnatomy:
         wrong = 0
         for pose in random_poses(6, size, seed=14):
             result = solve(fixed, pose.moving_from(fixed), half_turns=False, peaks=1)
-            wrong += pose_errors(result.rotation[0], result.scale[0], result.translation[0], pose)[0] > 90
+            wrong += pose.errors(result.rotation[0], result.scale[0], result.translation[0])[0] > 90
         assert wrong > 0  # the ambiguity is real, so candidate resolution is what makes "any pose" true
 
 
@@ -136,8 +137,8 @@ class TestGradients:
         moving = pose.moving_from(fixed)
         refined = solve(fixed, moving)
         soft = solve(fixed, moving, config=SolverConfig(refine=False))
-        refined_error = pose_errors(refined.rotation[0], refined.scale[0], refined.translation[0], pose)
-        soft_error = pose_errors(soft.rotation[0], soft.scale[0], soft.translation[0], pose)
+        refined_error = pose.errors(refined.rotation[0], refined.scale[0], refined.translation[0])
+        soft_error = pose.errors(soft.rotation[0], soft.scale[0], soft.translation[0])
         assert refined_error[0] <= soft_error[0] + 0.1 and soft_error[0] < 5.0
 
 

@@ -7,11 +7,17 @@ import math
 import pytest
 import torch
 
-from dpcn_med.geometry import random_rotation
-from dpcn_med.solver.sphere import (log_radii, normalize_sphere, quadrature_weights, sample_sphere, sphere_angles,
-                                    sphere_directions, to_sphere)
+from dpcn_med.geometry import random_rotation, warp
 from dpcn_med.solver.spectrum import magnitude_spectrum
-from dpcn_med.geometry import warp
+from dpcn_med.solver.sphere import (
+    log_radii,
+    normalize_sphere,
+    quadrature_weights,
+    sample_sphere,
+    sphere_angles,
+    sphere_directions,
+    to_sphere,
+)
 from tests.conftest import volume_grid
 
 

@@ -13,7 +13,8 @@ class TestPhaseTranslation:
     def test_recovers_a_sub_voxel_shift_of_anatomy(self, dtype):
         fixed = volume_grid("mni", 32, dtype)
         true = torch.tensor([[2.25, -3.5, 1.75]], dtype=dtype)
-        moving = warp(fixed, torch.eye(3, dtype=dtype)[None], -true)  # moving(q) = fixed(q - t): fixed(p) = moving(p + t)
+        # moving(q) = fixed(q - t), so fixed(p) = moving(p + t)
+        moving = warp(fixed, torch.eye(3, dtype=dtype)[None], -true)
         estimate = phase_translation(fixed[:, 0], moving[:, 0], 0.01, dim=3, taper=0.25, refine=True, upsample=16)
         torch.testing.assert_close(estimate.shift, true, atol=0.15, rtol=0)
         assert estimate.peak.mass.item() > 0.9

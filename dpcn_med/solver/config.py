@@ -29,16 +29,20 @@ class SolverConfig:
         refine_oversample: the fixed sphere used by the continuous rotation refinement has this times the bandwidth.
         refine_iterations: halvings of the rotation refinement's step.
         duplicate_degrees: candidates closer than this to a better one are dropped.
+        sphere_margin: candidates whose sphere correlation is this much below the best are dropped.
         scale_bandwidth: the scale stage's profiles follow the SOFT grid of this bandwidth (``4 b^2`` directions).
         scale_band: radii of the scale profiles, fractions of the Nyquist radius.
         scale_radii: samples per profile, log-spaced.
         max_scale: the scale stage searches ``[1 / max_scale, max_scale]``.
-        candidate_size: grid size on which candidates are scored by their translation peak (downsampled).
+        candidate_size: grid size on which all candidates are scored by their translation peak (downsampled).
+        finalists: the best this many are scored again on a grid of ``finalist_size``.
+        finalist_size: grid size of the second scoring.
         upsample: sub-grid refinement factor of the translation and scale peaks.
         log_polar_angles: 2-D only: angular samples of the log-polar grid over 180 degrees.
         log_polar_radii: 2-D only: log-radial samples.
         log_polar_band: 2-D only: radii as fractions of the Nyquist radius.
         iterations: 2-D only: log-polar passes; each later pass measures the residual pose after warping.
+        profile: record per-stage wall-clock times in the result (synchronises CUDA at stage boundaries).
     """
 
     bandwidth: int | None = None
@@ -53,16 +57,20 @@ class SolverConfig:
     refine_oversample: int = 2
     refine_iterations: int = 7
     duplicate_degrees: float = 20.0
+    sphere_margin: float = 0.25
     scale_bandwidth: int = 8
     scale_band: tuple[float, float] = (0.05, 0.8)
     scale_radii: int = 64
     max_scale: float = 2.0
     candidate_size: int = 32
+    finalists: int = 4
+    finalist_size: int = 64
     upsample: int = 16
     log_polar_angles: int = 360
     log_polar_radii: int = 256
     log_polar_band: tuple[float, float] = (0.03, 0.9)
     iterations: int = 2
+    profile: bool = False
 
 
 @dataclass

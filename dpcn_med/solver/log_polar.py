@@ -11,6 +11,7 @@ from torch import Tensor
 from dpcn_med.geometry import sample
 from dpcn_med.solver.phase_correlation import SoftPeak, phase_correlation, refine_peak, soft_argmax
 from dpcn_med.solver.scale import detrend
+from dpcn_med.solver.sphere import log_radii, log_radius_step
 
 
 @dataclass
@@ -52,14 +53,16 @@ def log_polar(magnitude: Tensor, angles: int, radii: Tensor) -> Tensor:
     return torch.log(values + floor[:, None, None])
 
 
-def log_polar_rotation_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, radii: Tensor, angles: int,
-                             temperature: Tensor | float, *, refine: bool, upsample: int) -> LogPolarEstimate:
+def log_polar_rotation_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, band: tuple[float, float],
+                             samples: int, angles: int, temperature: Tensor | float, *, refine: bool,
+                             upsample: int) -> LogPolarEstimate:
     """Rotation (modulo half a turn) and scale between two 2-D magnitude spectra.
 
     Args:
         fixed_magnitude: ``(B, N, N)`` ``fftshift``-ed magnitude spectrum of the fixed image.
         moving_magnitude: ``(B, N, N)`` same for the moving image.
-        radii: ``(R,)`` log-spaced radii.
+        band: radii, fractions of the Nyquist radius.
+        samples: log-spaced radial samples.
         angles: angular samples over half a turn.
         temperature: softmax temperature.
         refine: arg-max plus an upsampled-DFT refinement (True) or the soft arg-max (False).
@@ -77,7 +80,8 @@ def log_polar_rotation_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, 
         Reddy and Chatterji, "An FFT-based technique for translation, rotation, and scale-invariant image
         registration", IEEE TIP 1996.
     """
-    samples = radii.shape[0]
+    radii = log_radii(fixed_magnitude.shape[-1], band, samples, device=fixed_magnitude.device,
+                      dtype=fixed_magnitude.dtype)
     taper = torch.hann_window(samples, periodic=False, device=radii.device, dtype=radii.dtype)
     pad = (0, samples)
     fixed = torch.nn.functional.pad(detrend(log_polar(fixed_magnitude, angles, radii)) * taper, pad)
@@ -86,7 +90,7 @@ def log_polar_rotation_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, 
     peak = soft_argmax(surface, temperature, 2, half_width=1)
     shift = refine_peak(spectrum, peak.index, tuple(fixed.shape[-2:]), upsample=upsample)[0] if refine else peak.shift
     angle_bin = math.pi / angles
-    radius_bin = math.log(radii[-1].item() / radii[0].item()) / (samples - 1)
+    radius_bin = log_radius_step(band, samples)
     angle = torch.remainder(shift[:, 1] * angle_bin + math.pi / 2, math.pi) - math.pi / 2
     return LogPolarEstimate(angle=angle, scale=torch.exp(-shift[:, 0] * radius_bin), peak=peak,
                             angle_bin=angle_bin, radius_bin=radius_bin)

@@ -44,7 +44,8 @@ def rotation_kl(log_prob: Tensor, target: Tensor, sigma: float) -> Tensor:
     """KL divergence from a Gaussian on SO(3) around the true rotation to the Euler-grid distribution.
 
     Args:
-        log_prob: ``(B, 2B, 2B, 2B)`` Haar-weighted log-softmax ``[alpha, beta, gamma]`` (``SolveResult.rotation_log_prob``).
+        log_prob: ``(B, 2B, 2B, 2B)`` Haar-weighted log-softmax ``[alpha, beta, gamma]``
+            (``SolveResult.rotation_log_prob``).
         target: ``(B, 3, 3)`` true rotation.
         sigma: radians.
 

@@ -39,8 +39,8 @@ def cross_power_spectrum(fixed: Tensor, moving: Tensor, dim: int, *, whiten: boo
 def correlation_surface(spectrum: Tensor, sizes: tuple[int, ...]) -> Tensor:
     """Correlation surface of a one-sided cross-power spectrum: ``(B, *S')`` complex -> ``(B, *sizes)`` real.
 
-    Shifted so that index ``size // 2`` along each axis is a zero shift; for a whitened spectrum of a pure translation the
-    surface is a unit peak at the shift ``d`` with ``fixed(p) = moving(p + d)``.
+    Shifted so that index ``size // 2`` along each axis is a zero shift; for a whitened spectrum of a pure translation
+    the surface is a unit peak at the shift ``d`` with ``fixed(p) = moving(p + d)``.
     """
     axes = tuple(range(-len(sizes), 0))
     return torch.fft.fftshift(torch.fft.irfftn(spectrum, s=sizes, dim=axes), dim=axes)

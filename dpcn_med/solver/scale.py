@@ -9,7 +9,13 @@ import torch
 from torch import Tensor
 
 from dpcn_med.solver.phase_correlation import SoftPeak, correlation_surface, refine_peak, soft_argmax
-from dpcn_med.solver.sphere import quadrature_weights, radial_profiles, sphere_directions
+from dpcn_med.solver.sphere import (
+    log_radii,
+    log_radius_step,
+    quadrature_weights,
+    radial_profiles,
+    sphere_directions,
+)
 
 
 @dataclass
@@ -42,9 +48,9 @@ def detrend(profiles: Tensor) -> Tensor:
     return centred - slope * x
 
 
-def log_polar_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, rotation: Tensor, radii: Tensor,
-                    temperature: Tensor | float, *, directions_bandwidth: int, max_scale: float, refine: bool,
-                    upsample: int) -> ScaleEstimate:
+def log_polar_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, rotation: Tensor, band: tuple[float, float],
+                    samples: int, temperature: Tensor | float, *, directions_bandwidth: int, max_scale: float,
+                    refine: bool, upsample: int) -> ScaleEstimate:
     """Scale between two magnitude spectra, given the rotation.
 
     Log-magnitude profiles along directions ``u`` of the fixed spectrum and ``R u`` of the moving one are detrended,
@@ -55,7 +61,8 @@ def log_polar_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, rotation:
         fixed_magnitude: ``(B, N, N, N)`` ``fftshift``-ed magnitude spectrum of the fixed volume.
         moving_magnitude: ``(B, N, N, N)`` same for the moving volume.
         rotation: ``(B, K, 3, 3)`` candidate rotations of ``fixed(p) ~ moving(mu R p + t)``.
-        radii: ``(R,)`` log-spaced radii (:func:`dpcn_med.solver.sphere.log_radii`).
+        band: radii of the profiles, fractions of the Nyquist radius.
+        samples: log-spaced samples per profile.
         temperature: softmax temperature over lags.
         directions_bandwidth: the profiles use the SOFT grid of this bandwidth (``4 b^2`` directions).
         max_scale: only scales in ``[1 / max_scale, max_scale]`` are considered.
@@ -72,7 +79,7 @@ def log_polar_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, rotation:
     batch, count = rotation.shape[:2]
     directions = sphere_directions(directions_bandwidth, device=rotation.device, dtype=rotation.dtype)
     moving_dirs = torch.einsum("bkij,...j->bk...i", rotation, directions)  # (B, K, 2b, 2b, 3)
-    samples = radii.shape[0]
+    radii = log_radii(fixed_magnitude.shape[-1], band, samples, device=rotation.device, dtype=rotation.dtype)
     taper = torch.hann_window(samples, periodic=False, device=radii.device, dtype=radii.dtype)
     fixed = detrend(radial_profiles(fixed_magnitude, directions.expand(batch, *directions.shape), radii)) * taper
     moving = detrend(radial_profiles(moving_magnitude, moving_dirs, radii)) * taper
@@ -83,7 +90,7 @@ def log_polar_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, rotation:
     energy = ((fixed ** 2).sum(-1) * weights).sum((1, 2))[:, None] * ((moving ** 2).sum(-1) * weights).sum((2, 3))
     spectrum = spectrum / (energy.sqrt().flatten() + torch.finfo(energy.dtype).eps)[:, None]
     sizes = (2 * samples,)
-    step = math.log(radii[-1].item() / radii[0].item()) / (samples - 1)
+    step = log_radius_step(band, samples)
     reach = min(samples - 1, math.ceil(math.log(max_scale) / step))  # lags of plausible scales only
     surface = correlation_surface(spectrum, sizes)[:, samples - reach:samples + reach + 1]
     peak = soft_argmax(surface, temperature, dim=1, half_width=1, periodic=(False,))

@@ -229,7 +229,8 @@ def sphere_correlation(moving_sphere: Tensor, fixed_sphere: Tensor, weights: Ten
     """
     batch, count = rotation.shape[:2]
     rotated = torch.einsum("bkji,...j->bk...i", rotation, directions)  # R^T u
-    values = sample_sphere(fixed_sphere, rotated.reshape(batch, count, -1, 3)).reshape(batch, count, *directions.shape[:2])
+    values = sample_sphere(fixed_sphere, rotated.reshape(batch, count, -1, 3))
+    values = values.reshape(batch, count, *directions.shape[:2])
     w = weights[:, None] / (weights.sum() * directions.shape[1])
     return (values * (moving_sphere * w)[:, None]).sum((-2, -1))
 

@@ -12,7 +12,6 @@ from dpcn_med.geometry import rotation_2d, warp
 from dpcn_med.solver.config import SolverConfig, StageTemperatures
 from dpcn_med.solver.log_polar import LogPolarEstimate, log_polar_rotation_scale
 from dpcn_med.solver.spectrum import magnitude_spectrum
-from dpcn_med.solver.sphere import log_radii
 from dpcn_med.solver.translation import TranslationEstimate, phase_translation
 from dpcn_med.solver.validation import check_grids, check_mode
 
@@ -66,10 +65,9 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
     """
     config = replace(config or SolverConfig(), **options)
     temperatures = temperatures or StageTemperatures()
-    size = check_grids(fixed, moving, 2)
+    check_grids(fixed, moving, 2)
     check_mode(mode)
     batch = fixed.shape[0]
-    radii = log_radii(size, config.log_polar_band, config.log_polar_radii, device=fixed.device, dtype=fixed.dtype)
     fixed_image = fixed[:, 0]
     fixed_magnitude = magnitude_spectrum(fixed_image, 2, config.taper)
 
@@ -84,7 +82,8 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
     for iteration in range(max(config.iterations, 1)):
         linear = scale[:, None, None] * rotation_2d(angle)
         current = warp(moving, linear, translation)[:, 0]  # identity on the first pass
-        estimate = log_polar_rotation_scale(fixed_magnitude, magnitude_spectrum(current, 2, config.taper), radii,
+        estimate = log_polar_rotation_scale(fixed_magnitude, magnitude_spectrum(current, 2, config.taper),
+                                            config.log_polar_band, config.log_polar_radii,
                                             config.log_polar_angles, temperatures.rotation, refine=config.refine,
                                             upsample=config.upsample)
         step_scale = estimate.scale if mode == "similarity" else torch.ones_like(estimate.scale)

@@ -14,10 +14,18 @@ from dpcn_med.solver.config import SolverConfig, StageTemperatures
 from dpcn_med.solver.harmonics import even_degrees, isht, sht
 from dpcn_med.solver.phase_correlation import phase_correlation
 from dpcn_med.solver.scale import ScaleEstimate, log_polar_scale
-from dpcn_med.solver.so3 import (deduplicate, refine_rotation, so3_correlation, so3_log_prob, so3_peaks, soft_argmax_so3,
-                                 sphere_correlation)
+from dpcn_med.solver.so3 import (
+    deduplicate,
+    refine_rotation,
+    so3_correlation,
+    so3_log_prob,
+    so3_peaks,
+    soft_argmax_so3,
+    sphere_correlation,
+)
 from dpcn_med.solver.spectrum import apodize, magnitude_spectrum
 from dpcn_med.solver.sphere import log_radii, normalize_sphere, quadrature_weights, sphere_directions, to_sphere
+from dpcn_med.solver.timing import StageClock
 from dpcn_med.solver.translation import TranslationEstimate, phase_translation
 from dpcn_med.solver.validation import check_bandwidth, check_grids, check_mode
 
@@ -36,6 +44,7 @@ class SolveResult:
         scale_estimate: the scale stage of the chosen candidate (``None`` in rigid mode).
         translation_estimate: the translation stage of the chosen candidate (shift before ``scale * rotation``).
         candidates: ``(B,)`` number of distinct rotation candidates that were scored.
+        timings: seconds per stage when ``profile=True`` (empty otherwise).
     """
 
     rotation: Tensor
@@ -46,6 +55,7 @@ class SolveResult:
     scale_estimate: ScaleEstimate | None
     translation_estimate: TranslationEstimate
     candidates: Tensor
+    timings: dict[str, float]
 
 
 def _spheres(fixed: Tensor, moving: Tensor, config: SolverConfig, bandwidth: int
@@ -85,20 +95,40 @@ def _downsample(volume: Tensor, size: int) -> Tensor:
     return F.avg_pool3d(volume[:, None], factor)[:, 0]
 
 
-def _candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, config: SolverConfig) -> Tensor:
-    """Phase-correlation peak of each candidate on a coarse grid: ``linear (B, K, 3, 3)`` -> ``(B, K)``.
+def _candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, taper: float) -> Tensor:
+    """Phase-correlation peak of each candidate on a downsampled grid: ``linear (B, K, 3, 3)`` -> ``(B, K)``.
 
     The peak height measures how well the whole volume (not only its spectrum) agrees once rotated and scaled: it is
     what tells a rotation from its mirror twin.
     """
-    coarse_fixed = _downsample(fixed, config.candidate_size)
-    coarse_moving = _downsample(moving, config.candidate_size)
+    coarse_fixed = _downsample(fixed, size)
+    coarse_moving = _downsample(moving, size)
     batch, count = linear.shape[:2]
     sizes = tuple(coarse_moving.shape[-3:])
     warped = sample(coarse_moving[:, None], affine_points(sizes, linear))[:, 0]  # (B, K, n, n, n)
-    fixed_batch = apodize(coarse_fixed, 3, config.taper)[:, None].expand(batch, count, *sizes).flatten(0, 1)
-    surface, _ = phase_correlation(fixed_batch, apodize(warped.flatten(0, 1), 3, config.taper), 3)
+    fixed_batch = apodize(coarse_fixed, 3, taper)[:, None].expand(batch, count, *sizes).flatten(0, 1)
+    surface, _ = phase_correlation(fixed_batch, apodize(warped.flatten(0, 1), 3, taper), 3)
     return surface.flatten(1).max(-1).values.reshape(batch, count)
+
+
+def _choose_candidate(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score: Tensor, keep: Tensor,
+                      config: SolverConfig) -> Tensor:
+    """Index ``(B,)`` of the best candidate ``linear (B, K, 3, 3)`` (scaled rotations).
+
+    Candidates whose sphere correlation falls more than ``sphere_margin`` below the best are implausible; the rest
+    are scored by their translation peak on a coarse grid, and the ``finalists`` best are scored again on a finer one.
+    A volume a few coarse voxels wide looks centrally symmetric, so the coarse score alone can prefer the mirror twin
+    (measured on the MNI template at B = 64) or a rotation 24 degrees off (seg3d).
+    """
+    plausible = keep & (sphere_score >= sphere_score.masked_fill(~keep, float("-inf")).amax(-1, keepdim=True)
+                        - config.sphere_margin)
+    coarse = _candidate_scores(fixed, moving, linear, config.candidate_size, config.taper)
+    coarse = coarse.masked_fill(~plausible, float("-inf"))
+    finalists = coarse.topk(min(config.finalists, coarse.shape[1]), dim=-1)
+    finalist_linear = linear.gather(1, finalists.indices[..., None, None].expand(-1, -1, 3, 3))
+    fine = _candidate_scores(fixed, moving, finalist_linear, config.finalist_size, config.taper)
+    fine = fine.masked_fill(finalists.values == float("-inf"), float("-inf"))
+    return finalists.indices.gather(1, fine.argmax(-1, keepdim=True))[:, 0]
 
 
 def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: SolverConfig | None = None,
@@ -126,10 +156,12 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
     Notes:
         1. ``|FFT|`` of the apodised volumes removes translation; 2. averaging ``log |FFT|`` along rays onto the
         SOFT sphere removes scale; 3. the SO(3) correlation of the spheres gives the rotation peaks; each peak and its
-        half-turn twins are refined and 4. carried through the log-radius scale stage and 5. a coarse translation
-        phase correlation; the candidate with the highest translation peak wins and gets a full-resolution
-        translation. With ``refine=False`` every estimate is a soft arg-max, differentiable with respect to both
-        inputs and the temperatures.
+        half-turn twins (near-duplicates and poor sphere matches dropped) are carried through 4. the log-radius scale
+        stage and 5. a translation phase correlation, coarse for all and finer for the best few; the candidate with
+        the highest translation peak wins, its rotation is refined
+        continuously on the sphere, and scale and translation are measured again at full resolution. With
+        ``refine=False`` every estimate is a soft arg-max, differentiable with respect to both inputs and the
+        temperatures.
 
     References:
         Chen et al., "DPCN++: Differentiable Phase Correlation Network for Versatile Pose Registration", IEEE TPAMI
@@ -143,55 +175,60 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
     fixed_volume, moving_volume = fixed[:, 0], moving[:, 0]
     batch = fixed.shape[0]
 
-    fixed_magnitude, moving_magnitude, fixed_sphere, moving_sphere = _spheres(
-        fixed_volume, moving_volume, config, bandwidth)
-    degrees = even_degrees(bandwidth)
-    fixed_coeffs = sht(fixed_sphere, degrees)
-    correlation = so3_correlation(sht(moving_sphere, degrees), fixed_coeffs, bandwidth)
-    peaks = so3_peaks(correlation, config.peaks)
-    peak_rotation, _ = soft_argmax_so3(correlation, peaks, temperatures.rotation,
-                                       half_width=config.rotation_half_width)
-    candidates = _with_half_turns(peak_rotation) if config.half_turns else peak_rotation
+    clock = StageClock(fixed.device, config.profile)
+    with clock("spectrum and sphere"):
+        fixed_magnitude, moving_magnitude, fixed_sphere, moving_sphere = _spheres(
+            fixed_volume, moving_volume, config, bandwidth)
+        degrees = even_degrees(bandwidth)
+        fixed_coeffs = sht(fixed_sphere, degrees)
+        moving_coeffs = sht(moving_sphere, degrees)
+    with clock("so3 correlation"):
+        correlation = so3_correlation(moving_coeffs, fixed_coeffs, bandwidth)
+    with clock("peaks"):
+        peaks = so3_peaks(correlation, config.peaks)
+        peak_rotation, _ = soft_argmax_so3(correlation, peaks, temperatures.rotation,
+                                           half_width=config.rotation_half_width)
+        candidates = _with_half_turns(peak_rotation) if config.half_turns else peak_rotation
     count = candidates.shape[1]
     weights = quadrature_weights(bandwidth, device=fixed.device, dtype=fixed.dtype)
     directions = sphere_directions(bandwidth, device=fixed.device, dtype=fixed.dtype)
-    scale_radii = log_radii(size, config.scale_band, config.scale_radii, device=fixed.device, dtype=fixed.dtype)
 
     def scale_stage(rotation: Tensor) -> ScaleEstimate:
         """Scale for ``(B, K, 3, 3)`` rotations."""
-        return log_polar_scale(fixed_magnitude, moving_magnitude, rotation, scale_radii, temperatures.scale,
+        return log_polar_scale(fixed_magnitude, moving_magnitude, rotation, config.scale_band, config.scale_radii,
+                               temperatures.scale,
                                directions_bandwidth=config.scale_bandwidth, max_scale=config.max_scale,
-                               refine=config.refine,
-                               upsample=config.upsample)
+                               refine=config.refine, upsample=config.upsample)
 
-    with torch.no_grad():
+    with clock("candidates"), torch.no_grad():
         sphere_score = sphere_correlation(moving_sphere, fixed_sphere, weights, directions, candidates)
         keep = deduplicate(candidates, sphere_score, math.radians(config.duplicate_degrees))
         if mode == "similarity":
             candidate_scale = scale_stage(candidates).scale
         else:
             candidate_scale = torch.ones(batch, count, device=fixed.device, dtype=fixed.dtype)
-        scores = _candidate_scores(fixed_volume, moving_volume, candidate_scale[..., None, None] * candidates,
-                                   config)
-        best = scores.masked_fill(~keep, float("-inf")).argmax(-1)
+        best = _choose_candidate(fixed_volume, moving_volume, candidate_scale[..., None, None] * candidates,
+                                 sphere_score, keep, config)
     rotation = candidates[torch.arange(batch, device=fixed.device), best]
     if config.refine:
-        fine = bandwidth * config.refine_oversample
-        fine_sphere = isht(fixed_coeffs, degrees, fine)  # the band-limited fixed sphere, finely sampled
-        rotation, _ = refine_rotation(moving_sphere, fine_sphere, weights, directions, rotation[:, None],
-                                      step=math.pi / bandwidth, iterations=config.refine_iterations)
-        rotation = rotation[:, 0]
+        with clock("rotation refinement"):
+            fine_sphere = isht(fixed_coeffs, degrees, bandwidth * config.refine_oversample)  # band-limited, finely
+            rotation, _ = refine_rotation(moving_sphere, fine_sphere, weights, directions, rotation[:, None],
+                                          step=math.pi / bandwidth, iterations=config.refine_iterations)
+            rotation = rotation[:, 0]
 
-    scale_estimate = scale_stage(rotation[:, None]) if mode == "similarity" else None
-    scale = scale_estimate.scale[:, 0] if scale_estimate is not None else torch.ones(
-        batch, device=fixed.device, dtype=fixed.dtype)
-    linear = scale[:, None, None] * rotation
-    compensated = warp(moving, linear)[:, 0]
-    translation_estimate = phase_translation(fixed_volume, compensated, temperatures.translation, dim=3,
-                                             taper=config.taper, refine=config.refine, upsample=config.upsample)
-    translation = (linear @ translation_estimate.shift[..., None])[..., 0]
+    with clock("scale"):
+        scale_estimate = scale_stage(rotation[:, None]) if mode == "similarity" else None
+        scale = scale_estimate.scale[:, 0] if scale_estimate is not None else torch.ones(
+            batch, device=fixed.device, dtype=fixed.dtype)
+    with clock("translation"):
+        linear = scale[:, None, None] * rotation
+        compensated = warp(moving, linear)[:, 0]
+        translation_estimate = phase_translation(fixed_volume, compensated, temperatures.translation, dim=3,
+                                                 taper=config.taper, refine=config.refine, upsample=config.upsample)
+        translation = (linear @ translation_estimate.shift[..., None])[..., 0]
     rotation_log_prob = so3_log_prob(correlation, temperatures.rotation)
     return SolveResult(rotation=rotation, scale=scale, translation=translation,
                        confidence=translation_estimate.peak.mass, rotation_log_prob=rotation_log_prob,
                        scale_estimate=scale_estimate, translation_estimate=translation_estimate,
-                       candidates=keep.sum(-1))
+                       candidates=keep.sum(-1), timings=clock.seconds)

@@ -45,10 +45,19 @@ def quadrature_weights(bandwidth: int, *, device: torch.device | None = None, dt
 
 def log_radii(size: int, band: tuple[float, float], count: int, *, device: torch.device | None = None,
               dtype: torch.dtype | None = None) -> Tensor:
-    """``count`` radii evenly spaced in ``log r`` over ``band`` (fractions of the Nyquist radius ``size / 2``): ``(R,)``."""
+    """``count`` radii evenly spaced in ``log r`` over ``band`` (fractions of the Nyquist radius ``size / 2``).
+
+    Returns:
+        ``(R,)`` radii in frequency cells.
+    """
     nyquist = size / 2
     return torch.linspace(math.log(band[0] * nyquist), math.log(band[1] * nyquist), count, device=device,
                           dtype=dtype).exp()
+
+
+def log_radius_step(band: tuple[float, float], count: int) -> float:
+    """The ``log r`` spacing of :func:`log_radii` (computed on the host: no device synchronisation)."""
+    return math.log(band[1] / band[0]) / (count - 1)
 
 
 def radial_profiles(magnitude: Tensor, directions: Tensor, radii: Tensor, *, log_magnitude: bool = True) -> Tensor:

@@ -1,0 +1,151 @@
+"""Speed and peak memory of the DPC solver, per stage and end to end; prints a table and writes it under docs/.
+
+Each (device, bandwidth) runs in a fresh subprocess so that its peak memory is its own (CPU: the resident-set
+high-water mark above the loaded inputs, Linux; CUDA: ``max_memory_allocated``, the Wigner-d table included).
+Per-stage times come from ``solve(..., profile=True)`` (CUDA synchronised at stage boundaries); end-to-end times from
+plain calls (CUDA events on the GPU). The baseline, measured in the same process, is a translation-only registration: one 3-D phase
+correlation of the same two grids.
+
+    python benchmarks/solver_speed.py                       # CPU B = 32, 64; CUDA B = 64, 128 if present
+    python benchmarks/solver_speed.py --devices cuda --bandwidths 64 128 --repeats 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_BANDWIDTHS = {"cpu": [32, 64], "cuda": [64, 128]}
+
+
+def _elapsed(function, device: torch.device) -> float:
+    """Seconds for one call, with CUDA events on the GPU."""
+    if device.type == "cuda":
+        start, stop = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        function()
+        stop.record()
+        torch.cuda.synchronize(device)
+        return start.elapsed_time(stop) / 1000.0
+    began = time.perf_counter()
+    function()
+    return time.perf_counter() - began
+
+
+def _status_mib(field: str) -> float:
+    """A memory line of /proc/self/status (VmRSS, VmHWM) in MiB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) / 1024
+    raise KeyError(field)
+
+
+def _reset_peak_rss() -> float:
+    """Reset the process's resident-set high-water mark (Linux ``clear_refs``) and return the current RSS in MiB.
+
+    Loading the sample volume peaks higher than the solver does, so without the reset the peak would say nothing
+    about the solver.
+    """
+    Path("/proc/self/clear_refs").write_text("5")
+    return _status_mib("VmRSS")
+
+
+def worker(device_name: str, bandwidth: int, repeats: int) -> dict:
+    """Measure one configuration in this process and return the numbers."""
+    from dpcn_med.preprocess import solver_grid
+    from dpcn_med.samples import mni152_t1
+    from dpcn_med.solver import solve
+    from dpcn_med.solver.phase_correlation import phase_correlation
+    from dpcn_med.synth import random_poses
+
+    device = torch.device(device_name)
+    size = 2 * bandwidth
+    fixed = solver_grid(mni152_t1(), size)[0].to(device)
+    moving = random_poses(1, size, seed=0)[0].moving_from(fixed)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+    baseline_rss = _reset_peak_rss()
+
+    cold = _elapsed(lambda: solve(fixed, moving), device)  # builds and caches the Wigner-d table
+    for _ in range(2):
+        solve(fixed, moving)
+    stages: dict[str, list[float]] = {}
+    for _ in range(repeats):
+        for stage, seconds in solve(fixed, moving, profile=True).timings.items():
+            stages.setdefault(stage, []).append(seconds)
+    total = [_elapsed(lambda: solve(fixed, moving), device) for _ in range(repeats)]
+    translation_only = [_elapsed(lambda: phase_correlation(fixed[:, 0], moving[:, 0], 3), device)
+                        for _ in range(repeats)]
+    if device.type == "cuda":
+        peak = torch.cuda.max_memory_allocated(device) / 2 ** 20
+        peak_kind = "CUDA allocated"
+    else:
+        peak = _status_mib("VmHWM") - baseline_rss
+        peak_kind = "peak RSS above the inputs"
+    return {
+        "device": torch.cuda.get_device_name(device) if device.type == "cuda" else
+        f"CPU ({torch.get_num_threads()} threads, {platform.processor() or platform.machine()})",
+        "bandwidth": bandwidth, "size": size, "repeats": repeats, "cold": cold,
+        "stages": {name: statistics.median(values) for name, values in stages.items()},
+        "median": statistics.median(total), "min": min(total), "max": max(total),
+        "baseline": statistics.median(translation_only), "peak_mib": peak, "peak_kind": peak_kind,
+    }
+
+
+def table(rows: list[dict]) -> str:
+    """Markdown tables: end to end, then per stage."""
+    lines = ["| device | B | grid | median (ms) | min | max | first call (ms) | translation-only PC (ms) | ratio | "
+             "peak memory (MiB) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['device']} | {r['bandwidth']} | {r['size']}^3 | {r['median'] * 1e3:.1f} | "
+                     f"{r['min'] * 1e3:.1f} | {r['max'] * 1e3:.1f} | {r['cold'] * 1e3:.0f} | "
+                     f"{r['baseline'] * 1e3:.2f} | {r['median'] / r['baseline']:.1f}x | "
+                     f"{r['peak_mib']:.0f} ({r['peak_kind']}) |")
+    stages = list(rows[0]["stages"]) if rows else []
+    lines += ["", "Per stage, median ms (profiled run; stage boundaries synchronised):", "",
+              "| device | B | " + " | ".join(stages) + " |", "|---|---|" + "---|" * len(stages)]
+    for r in rows:
+        lines.append(f"| {r['device']} | {r['bandwidth']} | " + " | ".join(
+            f"{r['stages'].get(s, float('nan')) * 1e3:.1f}" for s in stages) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--devices", nargs="+", default=["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+    parser.add_argument("--bandwidths", nargs="+", type=int, help="default: 32 64 on CPU, 64 128 on CUDA")
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "solver_speed.md")
+    parser.add_argument("--worker", nargs=3, metavar=("DEVICE", "B", "REPEATS"), help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(args.worker[0], int(args.worker[1]), int(args.worker[2]))))
+        return 0
+    rows = []
+    for device in args.devices:
+        for bandwidth in args.bandwidths or DEFAULT_BANDWIDTHS[device]:
+            output = subprocess.run([sys.executable, __file__, "--worker", device, str(bandwidth), str(args.repeats)],
+                                    check=True, capture_output=True, text=True, cwd=ROOT).stdout
+            rows.append(json.loads(output.strip().splitlines()[-1]))
+            print(f"measured {device} B={bandwidth}", file=sys.stderr)
+    text = (f"# Solver speed\n\nGenerated by `python benchmarks/solver_speed.py` on {time.strftime('%Y-%m-%d')}, torch "
+            f"{torch.__version__}; MNI152 T1 on the canonical grid, one random similarity pose, batch 1, float32, "
+            f"{args.repeats} repeats.\n\n" + table(rows) + "\n")
+    print(text)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
