@@ -55,6 +55,17 @@ class TestRecovery:
         assert result.confidence.item() > 0.5
 
 
+    def test_small_rotation_of_a_sparse_phantom_is_not_pinned_to_zero(self):
+        # Whitened log-polar correlation once returned 0 degrees here: both resampled grids share a zero-shift pattern.
+        fixed = axial_slice("mridir/mridir_t2_1p5mm.nii.gz", 256)
+        pose = Pose(rotation_2d(torch.tensor(math.radians(1.66), dtype=torch.float64)), 0.98,
+                    torch.tensor([-14.6, 0.9], dtype=torch.float64))
+        result = solve2d(fixed, pose.moving_from(fixed))
+        rotation_error, translation_error, scale_error = pose.errors(result.rotation[0], result.scale[0],
+                                                                    result.translation[0])
+        assert rotation_error < 0.2 and translation_error < 0.5 and scale_error < 0.002
+
+
 class TestDegenerate:
     def test_empty_images_give_low_confidence_and_no_nan(self):
         result = solve2d(torch.zeros(1, 1, 64, 64), torch.zeros(1, 1, 64, 64))
