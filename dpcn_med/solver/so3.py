@@ -45,20 +45,19 @@ def _column_signs(like: Tensor) -> Tensor:
     return (1 - 2 * torch.remainder(orders, 2)).to(like.real.dtype)
 
 
-def _contract(table: Tensor, pairs: Tensor) -> Tensor:
-    """``sum_l table[mn, k, l] pairs[b, l, mn]``: ``(MN, K, L)`` real x ``(B, L, M, N)`` complex -> ``(B, K, M, N)``."""
-    batch, degrees, rows, cols = pairs.shape
-    stacked = torch.view_as_real(pairs.permute(2, 3, 1, 0).reshape(rows * cols, degrees, batch))
-    out = torch.bmm(table, stacked.reshape(rows * cols, degrees, 2 * batch))
-    out = torch.view_as_complex(out.reshape(rows * cols, -1, batch, 2).contiguous())
-    return out.permute(2, 1, 0).reshape(batch, -1, rows, cols)
+def _contract(table: Tensor, values: Tensor) -> Tensor:
+    """Per order pair ``(m, n)``, a real matrix applied to a complex vector.
 
+    Args:
+        table: ``(M N, K_out, K_in)`` real, e.g. ``d^l_mn(beta_k)`` as ``[mn, k, l]`` (or its transpose for the adjoint).
+        values: ``(B, K_in, M, N)`` complex.
 
-def _contract_adjoint(table: Tensor, grad: Tensor) -> Tensor:
-    """Adjoint of :func:`_contract`: ``(B, K, M, N)`` complex -> ``(B, L, M, N)``."""
-    batch, betas, rows, cols = grad.shape
-    stacked = torch.view_as_real(grad.permute(2, 3, 1, 0).reshape(rows * cols, betas, batch))
-    out = torch.bmm(table.transpose(1, 2), stacked.reshape(rows * cols, betas, 2 * batch))
+    Returns:
+        ``(B, K_out, M, N)`` complex: ``out[b, k, m, n] = sum_i table[mn, k, i] values[b, i, m, n]``.
+    """
+    batch, inner, rows, cols = values.shape
+    stacked = torch.view_as_real(values.permute(2, 3, 1, 0).reshape(rows * cols, inner, batch))
+    out = torch.bmm(table, stacked.reshape(rows * cols, inner, 2 * batch))
     out = torch.view_as_complex(out.reshape(rows * cols, -1, batch, 2).contiguous())
     return out.permute(2, 1, 0).reshape(batch, -1, rows, cols)
 
@@ -86,8 +85,8 @@ class _WignerSum(torch.autograd.Function):
         top = first.shape[-1] // 2
         half = table.shape[1]
         low, high = grad[:, :half], grad[:, half:].flip(1)
-        grad_pairs = _contract_adjoint(table, low) + _flip_rows(
-            _contract_adjoint(table, _flip_rows(_column_signs(grad) * high)))
+        adjoint = table.transpose(1, 2)
+        grad_pairs = _contract(adjoint, low) + _flip_rows(_contract(adjoint, _flip_rows(_column_signs(grad) * high)))
         grad_first = (grad_pairs * second[..., top:][..., None, :]).sum(-1)
         grad_second = torch.zeros_like(second)
         grad_second[..., top:] = (grad_pairs.conj() * first[..., :, None]).sum(-2)
