@@ -3,8 +3,8 @@
 Each (device, bandwidth) runs in a fresh subprocess so that its peak memory is its own (CPU: the resident-set
 high-water mark above the loaded inputs, Linux; CUDA: ``max_memory_allocated``, the Wigner-d table included).
 Per-stage times come from ``solve(..., profile=True)`` (CUDA synchronised at stage boundaries); end-to-end times from
-plain calls (CUDA events on the GPU). The baseline, measured in the same process, is a translation-only registration: one 3-D phase
-correlation of the same two grids.
+plain calls (CUDA events on the GPU). The baseline, measured in the same process, is a translation-only
+registration: one 3-D phase correlation of the same two grids.
 
     python benchmarks/solver_speed.py                       # CPU B = 32, 64; CUDA B = 64, 128 if present
     python benchmarks/solver_speed.py --devices cuda --bandwidths 64 128 --repeats 20

@@ -49,7 +49,8 @@ def _contract(table: Tensor, values: Tensor) -> Tensor:
     """Per order pair ``(m, n)``, a real matrix applied to a complex vector.
 
     Args:
-        table: ``(M N, K_out, K_in)`` real, e.g. ``d^l_mn(beta_k)`` as ``[mn, k, l]`` (or its transpose for the adjoint).
+        table: ``(M N, K_out, K_in)`` real, e.g. ``d^l_mn(beta_k)`` as ``[mn, k, l]``, or its transpose for the
+            adjoint.
         values: ``(B, K_in, M, N)`` complex.
 
     Returns:
