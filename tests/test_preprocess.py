@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import SimpleITK as sitk
+import torch
 
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import grid_centre
@@ -14,6 +15,7 @@ from dpcn_med.preprocess import (
     normalize_intensity,
     resample_to_grid,
     solver_grid,
+    solver_slice,
     to_tensor,
 )
 
@@ -74,6 +76,18 @@ class TestSolverGrid:
         array = np.linspace(0, 1000, 16 * 16 * 16, dtype=np.float32).reshape(16, 16, 16)
         normalised = sitk.GetArrayFromImage(normalize_intensity(sitk.GetImageFromArray(array)))
         assert normalised.min() == 0.0 and normalised.max() == 1.0
+
+    def test_a_pair_can_share_one_spacing(self):
+        _, fixed_grid = solver_grid(_box_image(), 16)
+        _, moving_grid = solver_grid(_box_image(), 16, spacing=fixed_grid.spacing * 2)
+        assert moving_grid.spacing == pytest.approx(2 * fixed_grid.spacing)
+
+    def test_slice_is_the_central_plane_of_the_cube(self):
+        image = _box_image()
+        cube, _ = solver_grid(image, 32)
+        plane = solver_slice(image, 32, fill=0.5)
+        assert plane.shape == (1, 1, 32, 32)
+        torch.testing.assert_close(plane[0, 0], cube[0, 0, grid_centre(32)])
 
     def test_to_tensor_rejects_2d_images(self):
         with pytest.raises(InputError, match="image is 2-D"):
