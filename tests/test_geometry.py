@@ -9,6 +9,7 @@ import torch
 
 from dpcn_med.geometry import (
     CanonicalGrid,
+    affine_points,
     axis_angle_to_matrix,
     euler_zyz_to_matrix,
     geodesic_distance,
@@ -21,7 +22,7 @@ from dpcn_med.geometry import (
     rotation_y,
     rotation_z,
     sample,
-    voxel_grid,
+    squared_distance_from_centre,
     warp,
 )
 
@@ -44,8 +45,8 @@ class TestEulerZYZ:
         assert (angles[:, 1] >= 0).all() and (angles[:, 1] <= math.pi).all()
         torch.testing.assert_close(euler_zyz_to_matrix(angles), rotation, atol=1e-9, rtol=0)
 
-    @pytest.mark.parametrize("beta", [0.0, math.pi])
-    def test_round_trip_at_the_gimbal_poles(self, beta):
+    @pytest.mark.parametrize("beta", [0.0, 5e-7, 2e-6, math.pi - 2e-6, math.pi])
+    def test_round_trip_at_and_near_the_gimbal_poles(self, beta):
         rotation = euler_zyz_to_matrix(torch.tensor([0.7, beta, 0.4], dtype=torch.float64))
         torch.testing.assert_close(euler_zyz_to_matrix(matrix_to_euler_zyz(rotation)), rotation, atol=1e-9, rtol=0)
 
@@ -80,7 +81,7 @@ class TestRandomRotation:
 
 class TestHalfTurns:
     def test_identity_then_half_turns_about_x_y_z(self):
-        turns = half_turns(dtype=torch.float64)
+        turns = half_turns(torch.device("cpu"), torch.float64)
         assert turns.shape == (4, 3, 3)
         torch.testing.assert_close(turns[0], torch.eye(3, dtype=torch.float64))
         for axis in range(3):
@@ -99,15 +100,24 @@ class TestProjectToRotation:
         torch.testing.assert_close(project_to_rotation(noisy), u @ vh, atol=1e-10, rtol=0)
 
 
-class TestVoxelGrid:
+class TestAffinePoints:
     def test_centre_voxel_is_the_origin_and_x_runs_along_the_last_axis(self):
-        points = voxel_grid((4, 6, 8), dtype=torch.float64)
+        points = affine_points((4, 6, 8), torch.eye(3, dtype=torch.float64)[None])[0]
         assert points.shape == (4, 6, 8, 3)
         torch.testing.assert_close(points[grid_centre(4), grid_centre(6), grid_centre(8)],
                                    torch.zeros(3, dtype=torch.float64))
         torch.testing.assert_close(points[2, 3, 5], torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
         torch.testing.assert_close(points[2, 4, 4], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
         torch.testing.assert_close(points[3, 3, 4], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+
+
+    def test_maps_every_voxel_by_matrix_and_translation(self):
+        matrix = random_rotation(2, torch.Generator().manual_seed(6)) * 1.5
+        translation = torch.tensor([[1.0, 2.0, 3.0], [-1.0, 0.5, 0.0]], dtype=torch.float64)
+        identity = affine_points((5, 4, 6), torch.eye(3, dtype=torch.float64)[None])
+        mapped = affine_points((5, 4, 6), matrix, translation)
+        torch.testing.assert_close(mapped, torch.einsum("bij,...j->b...i", matrix, identity[0])
+                                   + translation[:, None, None, None])
 
 
 def _spot(size: int, where: tuple[int, int, int]) -> torch.Tensor:
@@ -144,12 +154,32 @@ class TestWarp:
         y, x = torch.unravel_index(moved.flatten().argmax(), (12, 12))
         assert (int(x) - 6, int(y) - 6) == (2, 3)
 
+    def test_threaded_chunks_give_the_same_samples(self):
+        volume = torch.randn(1, 1, 16, 16, 16, generator=torch.Generator().manual_seed(7))
+        matrix = random_rotation(1, torch.Generator().manual_seed(8)).float()
+        threads = torch.get_num_threads()
+        try:
+            torch.set_num_threads(1)
+            single = warp(volume, matrix)
+            torch.set_num_threads(4)
+            chunked = warp(volume, matrix)
+        finally:
+            torch.set_num_threads(threads)
+        torch.testing.assert_close(chunked, single)
+
     def test_sample_is_trilinear_and_zero_outside(self):
         volume = torch.arange(4 ** 3, dtype=torch.float64).reshape(1, 1, 4, 4, 4)
         points = torch.tensor([[[0.5, 0.0, 0.0], [0.0, 0.0, 10.0]]], dtype=torch.float64)
         values = sample(volume, points)[0, 0]
         centre = volume[0, 0, 2, 2, 2]
         torch.testing.assert_close(values, torch.stack([centre + 0.5, torch.tensor(0.0, dtype=torch.float64)]))
+
+
+class TestSquaredDistance:
+    def test_matches_the_coordinates(self):
+        points = affine_points((5, 4, 6), torch.eye(3, dtype=torch.float64)[None])[0]
+        torch.testing.assert_close(squared_distance_from_centre((5, 4, 6), dtype=torch.float64),
+                                   points.square().sum(-1))
 
 
 class TestCanonicalGrid:

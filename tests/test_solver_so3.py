@@ -28,6 +28,7 @@ from dpcn_med.solver.so3 import (
 )
 from dpcn_med.solver.sphere import quadrature_weights, sphere_directions
 from dpcn_med.solver.wigner import wigner_d
+from tests.conftest import TOLERANCE
 from tests.test_solver_harmonics import _random_real_coefficients
 
 
@@ -52,22 +53,26 @@ def _analytic_pair(bandwidth: int, rotation: torch.Tensor, seed: int) -> tuple[t
 
 
 class TestSO3Correlation:
-    def test_equals_the_direct_sum_over_all_betas_and_orders(self):
+    def test_equals_the_direct_sum_over_all_betas_and_orders(self, device, dtype):
         bandwidth = 6
         degrees = even_degrees(bandwidth)
         generator = torch.Generator().manual_seed(0)
-        spheres = torch.randn(2, 1, 2 * bandwidth, 2 * bandwidth, generator=generator, dtype=torch.float64)
-        first, second = sht(spheres[0], degrees), sht(spheres[1], degrees)
+        spheres = torch.randn(2, 3, 2 * bandwidth, 2 * bandwidth, generator=generator, dtype=torch.float64)
+        first, second = sht(spheres[0], degrees), sht(spheres[1], degrees)  # a batch of 3
         _, betas, _ = euler_grid(bandwidth, dtype=torch.float64)
         d = wigner_d(degrees, betas)  # (L, 2B, M, N)
         spectrum = torch.einsum("lkmn,blm,bln->bkmn", d.to(torch.complex128), first, second.conj())
         top = max(degrees)
-        padded = torch.zeros(1, 2 * bandwidth, 2 * bandwidth, 2 * bandwidth, dtype=torch.complex128)
+        padded = torch.zeros(3, 2 * bandwidth, 2 * bandwidth, 2 * bandwidth, dtype=torch.complex128)
         orders = torch.remainder(torch.arange(-top, top + 1), 2 * bandwidth)
         padded[:, :, orders[:, None], orders[None, :]] = spectrum
         direct = torch.fft.ifft2(padded, norm="forward").real.permute(0, 2, 1, 3)
-        direct = direct / (first.abs().square().sum().sqrt() * second.abs().square().sum().sqrt())
-        torch.testing.assert_close(so3_correlation(first, second, bandwidth), direct, atol=1e-12, rtol=0)
+        direct = direct / (first.abs().square().sum((1, 2)).sqrt() * second.abs().square().sum((1, 2)).sqrt())[
+            :, None, None, None]
+        complex_dtype = torch.complex64 if dtype == torch.float32 else torch.complex128
+        ours = so3_correlation(first.to(device, complex_dtype), second.to(device, complex_dtype), bandwidth)
+        assert ours.device.type == device.type and ours.dtype == dtype
+        torch.testing.assert_close(ours.cpu().double(), direct, atol=TOLERANCE[dtype], rtol=0)
 
     @pytest.mark.parametrize("seed", range(4))
     def test_peaks_at_the_rotation_of_an_analytic_band_limited_sphere(self, seed):

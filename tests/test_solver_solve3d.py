@@ -101,6 +101,17 @@ class TestRecoveryOnRealAnatomy:
         assert wrong > 0  # the ambiguity is real, so candidate resolution is what makes "any pose" true
 
 
+class TestProfile:
+    def test_timings_cover_every_stage_only_when_asked(self):
+        fixed = volume_grid("mni", 32)
+        moving = random_poses(1, 32, seed=20)[0].moving_from(fixed)
+        assert solve(fixed, moving).timings == {}
+        timings = solve(fixed, moving, profile=True).timings
+        assert list(timings) == ["spectrum and sphere", "so3 correlation", "peaks", "candidates",
+                                 "rotation refinement", "scale", "translation"]
+        assert all(seconds > 0 for seconds in timings.values())
+
+
 class TestBatch:
     def test_batch_equals_items_solved_alone(self):
         size = 32

@@ -1,7 +1,7 @@
 """Spherical harmonic transform on the SOFT grid (step 3 of DPC, first half).
 
 Convention: ``Y_l^m(theta, phi)`` orthonormal with the Condon-Shortley phase, equal to
-``scipy.special.sph_harm_y(l, m, theta, phi)``. Coefficients are stored densely as ``(B, L, 2M + 1)`` for a list of
+``scipy.special.sph_harm_y(l, m, theta, phi)``. Coefficients are stored densely as ``(batch, L, 2M + 1)`` for a list of
 ``L`` degrees, order ``m = -M..M`` at index ``m + M`` (``M`` the largest degree), zero where ``|m| > l``.
 """
 
@@ -48,7 +48,7 @@ def legendre_table(bandwidth: int, degrees: tuple[int, ...], device: torch.devic
     return torch.from_numpy(table).to(device=device, dtype=dtype)
 
 
-def _orders(top: int, columns: int, device: torch.device) -> Tensor:
+def order_columns(top: int, columns: int, device: torch.device) -> Tensor:
     """Column of each order ``m = -top..top`` in a length-``columns`` FFT over ``phi``."""
     return torch.remainder(torch.arange(-top, top + 1, device=device), columns)
 
@@ -57,11 +57,12 @@ def sht(sphere: Tensor, degrees: tuple[int, ...]) -> Tensor:
     """Forward spherical harmonic transform by SOFT/Driscoll-Healy quadrature.
 
     Args:
-        sphere: ``(B, 2B, 2B)`` real values on the SOFT grid, ``[theta, phi]``.
+        sphere: ``(batch, 2B, 2B)`` real values on the SOFT grid, ``[theta, phi]``.
         degrees: the degrees to compute, all below the bandwidth ``B``.
 
     Returns:
-        ``(B, L, 2M + 1)`` complex coefficients ``S_l^m = integral s conj(Y_l^m)``, exact for functions of band-limit
+        ``(batch, L, 2M + 1)`` complex coefficients ``S_l^m = integral s conj(Y_l^m)``, exact for functions of
+        band-limit
         ``B``.
 
     Notes:
@@ -74,8 +75,8 @@ def sht(sphere: Tensor, degrees: tuple[int, ...]) -> Tensor:
     real = sphere.dtype
     table = legendre_table(bandwidth, tuple(degrees), sphere.device, real)
     weights = quadrature_weights(bandwidth, device=sphere.device, dtype=real) * (math.pi / bandwidth)
-    fourier = torch.fft.fft(sphere, dim=-1)[..., _orders(max(degrees), sphere.shape[-1], sphere.device)]
-    weighted = torch.view_as_real(fourier * weights[:, None])  # (B, 2B, 2M + 1, 2)
+    fourier = torch.fft.fft(sphere, dim=-1)[..., order_columns(max(degrees), sphere.shape[-1], sphere.device)]
+    weighted = torch.view_as_real(fourier * weights[:, None])  # (batch, 2B, 2M + 1, 2)
     coeffs = torch.einsum("lmj,bjmc->blmc", table, weighted)
     return torch.view_as_complex(coeffs.contiguous())
 
@@ -84,17 +85,17 @@ def isht(coeffs: Tensor, degrees: tuple[int, ...], bandwidth: int) -> Tensor:
     """Inverse transform: ``s(theta_j, phi_k) = sum_l sum_m S_l^m Y_l^m(theta_j, phi_k)``, real part.
 
     Args:
-        coeffs: ``(B, L, 2M + 1)`` complex, as from :func:`sht`.
+        coeffs: ``(batch, L, 2M + 1)`` complex, as from :func:`sht`.
         degrees: the ``L`` degrees of ``coeffs``.
         bandwidth: ``B`` of the output grid.
 
     Returns:
-        ``(B, 2B, 2B)`` real values on the SOFT grid.
+        ``(batch, 2B, 2B)`` real values on the SOFT grid.
     """
     real = coeffs.real.dtype
     table = legendre_table(bandwidth, tuple(degrees), coeffs.device, real)
     per_order = torch.einsum("lmj,blmc->bjmc", table, torch.view_as_real(coeffs))
     columns = 2 * bandwidth
     spectrum = per_order.new_zeros(coeffs.shape[0], columns, columns, 2)
-    spectrum = spectrum.index_add(2, _orders(max(degrees), columns, coeffs.device), per_order)
+    spectrum = spectrum.index_add(2, order_columns(max(degrees), columns, coeffs.device), per_order)
     return torch.fft.ifft(torch.view_as_complex(spectrum), dim=-1, norm="forward").real

@@ -11,7 +11,7 @@ from torch import Tensor
 from dpcn_med.geometry import sample
 from dpcn_med.solver.phase_correlation import SoftPeak, phase_correlation, refine_peak, soft_argmax
 from dpcn_med.solver.scale import detrend
-from dpcn_med.solver.sphere import log_radii, log_radius_step
+from dpcn_med.solver.sphere import floored_log, log_radii, log_radius_step
 
 
 @dataclass
@@ -19,9 +19,9 @@ class LogPolarEstimate:
     """Result of :func:`log_polar_rotation_scale`.
 
     Attributes:
-        angle: ``(B,)`` radians in ``[-pi/2, pi/2)``, counter-clockwise; ``angle + pi`` is equally likely (``|FFT|``
+        angle: ``(batch,)`` radians in ``[-pi/2, pi/2)``, counter-clockwise; ``angle + pi`` is equally likely (``|FFT|``
             is point-symmetric).
-        scale: ``(B,)``.
+        scale: ``(batch,)``.
         peak: soft arg-max over ``(angle, log-radius)`` cells: ``peak.shift`` is ``(log-radius, angle)`` in cells.
         angle_bin: radians per angular cell.
         radius_bin: ``log r`` per radial cell.
@@ -38,19 +38,18 @@ def log_polar(magnitude: Tensor, angles: int, radii: Tensor) -> Tensor:
     """Log-magnitude spectrum on a log-polar grid over half a turn.
 
     Args:
-        magnitude: ``(B, N, N)`` ``fftshift``-ed magnitude spectrum.
+        magnitude: ``(batch, N, N)`` ``fftshift``-ed magnitude spectrum.
         angles: number of angles ``theta_i = pi i / angles`` (half a turn suffices: ``|FFT|`` is point-symmetric).
         radii: ``(R,)`` log-spaced radii in frequency cells.
 
     Returns:
-        ``(B, angles, R)`` ``log |G|(r (cos theta, sin theta))``.
+        ``(batch, angles, R)`` ``log |G|(r (cos theta, sin theta))``.
     """
     theta = torch.arange(angles, device=magnitude.device, dtype=magnitude.dtype) * (math.pi / angles)
     directions = torch.stack([theta.cos(), theta.sin()], -1)
     points = directions[:, None, :] * radii[:, None]  # (A, R, 2)
     values = sample(magnitude[:, None], points.expand(magnitude.shape[0], *points.shape))[:, 0]
-    floor = 1e-3 * magnitude.flatten(1).mean(-1) + torch.finfo(magnitude.dtype).tiny
-    return torch.log(values + floor[:, None, None])
+    return floored_log(values, magnitude)
 
 
 def log_polar_rotation_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, band: tuple[float, float],
@@ -59,8 +58,8 @@ def log_polar_rotation_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, 
     """Rotation (modulo half a turn) and scale between two 2-D magnitude spectra.
 
     Args:
-        fixed_magnitude: ``(B, N, N)`` ``fftshift``-ed magnitude spectrum of the fixed image.
-        moving_magnitude: ``(B, N, N)`` same for the moving image.
+        fixed_magnitude: ``(batch, N, N)`` ``fftshift``-ed magnitude spectrum of the fixed image.
+        moving_magnitude: ``(batch, N, N)`` same for the moving image.
         band: radii, fractions of the Nyquist radius.
         samples: log-spaced radial samples.
         angles: angular samples over half a turn.
@@ -92,7 +91,7 @@ def log_polar_rotation_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, 
     surface, spectrum = phase_correlation(fixed, moving, 2, whiten=False)
     energy = (fixed.square().sum((-2, -1)) * moving.square().sum((-2, -1))).sqrt() + torch.finfo(fixed.dtype).eps
     surface, spectrum = surface / energy[:, None, None], spectrum / energy[:, None, None]
-    peak = soft_argmax(surface, temperature, 2, half_width=1)
+    peak = soft_argmax(surface, temperature, 2)
     shift = refine_peak(spectrum, peak.index, tuple(fixed.shape[-2:]), upsample=upsample)[0] if refine else peak.shift
     angle_bin = math.pi / angles
     radius_bin = log_radius_step(band, samples)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -34,27 +35,37 @@ class LossWeights:
 
 
 def _kl_from_log_target(log_target: Tensor, log_prob: Tensor) -> Tensor:
-    """``KL(q || p)`` over all but the batch axis, from unnormalised ``log q`` and normalised ``log p``: ``(B,)``."""
+    """``KL(q || p)`` over all but the batch axis, from unnormalised ``log q`` and normalised ``log p``.
+
+    Returns:
+        ``(batch,)``.
+    """
     flat_target = log_target.flatten(1)
     log_q = flat_target - torch.logsumexp(flat_target, -1, keepdim=True)
     return (log_q.exp() * (log_q - log_prob.flatten(1))).sum(-1)
+
+
+@functools.lru_cache(maxsize=2)
+def _euler_grid_rotations(bandwidth: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """Rotation of every Euler grid cell: ``(2B, 2B, 2B, 3, 3)``, cached (75 MB at B = 64 in float32)."""
+    ticks = torch.arange(2 * bandwidth, device=device, dtype=dtype)
+    return grid_rotations(bandwidth, torch.stack(torch.meshgrid(ticks, ticks, ticks, indexing="ij"), -1))
 
 
 def rotation_kl(log_prob: Tensor, target: Tensor, sigma: float) -> Tensor:
     """KL divergence from a Gaussian on SO(3) around the true rotation to the Euler-grid distribution.
 
     Args:
-        log_prob: ``(B, 2B, 2B, 2B)`` Haar-weighted log-softmax ``[alpha, beta, gamma]``
+        log_prob: ``(batch, 2B, 2B, 2B)`` Haar-weighted log-softmax ``[alpha, beta, gamma]``
             (``SolveResult.rotation_log_prob``).
-        target: ``(B, 3, 3)`` true rotation.
+        target: ``(batch, 3, 3)`` true rotation.
         sigma: radians.
 
     Returns:
-        ``(B,)``. The target is ``exp(-angle(R_cell, target)^2 / 2 sigma^2) sin(beta)``, Haar-weighted like ``p``.
+        ``(batch,)``. The target is ``exp(-angle(R_cell, target)^2 / 2 sigma^2) sin(beta)``, Haar-weighted like ``p``.
     """
     bandwidth = log_prob.shape[-1] // 2
-    index = torch.stack(torch.meshgrid(*[torch.arange(2 * bandwidth, device=log_prob.device)] * 3, indexing="ij"), -1)
-    cells = grid_rotations(bandwidth, index.to(log_prob.dtype))  # (2B, 2B, 2B, 3, 3)
+    cells = _euler_grid_rotations(bandwidth, log_prob.device, log_prob.dtype)
     angle = geodesic_distance(cells[None], target[:, None, None, None].to(log_prob.dtype))
     _, beta, _ = euler_grid(bandwidth, device=log_prob.device, dtype=log_prob.dtype)
     log_target = -angle ** 2 / (2 * sigma ** 2) + torch.log(torch.sin(beta))[None, None, :, None]
@@ -65,13 +76,13 @@ def shift_kl(log_prob: Tensor, target: Tensor, sigma: float, *, periodic: tuple[
     """KL divergence from a Gaussian around the true shift to a Cartesian soft-arg-max distribution.
 
     Args:
-        log_prob: ``(B, *S)`` log-softmax over shifts, zero shift at index ``size // 2`` (``SoftPeak.log_prob``).
-        target: ``(B, d)`` true shift in cells, order ``(x, y[, z])``.
+        log_prob: ``(batch, *S)`` log-softmax over shifts, zero shift at index ``size // 2`` (``SoftPeak.log_prob``).
+        target: ``(batch, d)`` true shift in cells, order ``(x, y[, z])``.
         sigma: cells.
         periodic: per axis (torch order), whether distances wrap; default all.
 
     Returns:
-        ``(B,)``.
+        ``(batch,)``.
     """
     sizes = log_prob.shape[1:]
     dim = len(sizes)
@@ -79,7 +90,7 @@ def shift_kl(log_prob: Tensor, target: Tensor, sigma: float, *, periodic: tuple[
     squared = 0.0
     for axis, n in enumerate(sizes):
         cell = torch.arange(n, device=log_prob.device, dtype=log_prob.dtype) - grid_centre(n)
-        delta = cell[None] - target[:, dim - 1 - axis, None].to(log_prob.dtype)  # (B, n)
+        delta = cell[None] - target[:, dim - 1 - axis, None].to(log_prob.dtype)  # (batch, n)
         if periodic[axis]:
             delta = torch.remainder(delta + n / 2, n) - n / 2
         squared = squared + (delta ** 2).reshape(-1, *[n if a == axis else 1 for a in range(dim)])
@@ -91,9 +102,9 @@ class PoseTarget:
     """Ground truth of a pair: ``fixed(p) = moving(scale * rotation @ p + translation)``.
 
     Attributes:
-        rotation: ``(B, 3, 3)``.
-        scale: ``(B,)``.
-        translation: ``(B, 3)`` voxels ``(x, y, z)``.
+        rotation: ``(batch, 3, 3)``.
+        scale: ``(batch,)``.
+        translation: ``(batch, 3)`` voxels ``(x, y, z)``.
     """
 
     rotation: Tensor
@@ -111,18 +122,19 @@ def pose_loss(result: SolveResult, target: PoseTarget, weights: LossWeights | No
 
     Returns:
         ``{"rotation_kl", "rotation_l1", "translation_kl", "translation_l1", "scale_kl", "scale_l1", "total"}``, each
-        a scalar (batch mean). The rotation L1 is the geodesic angle (wrap-safe); the translation terms compare the
-        stage's own shift (before ``scale * rotation``) with the true one, ``(scale R)^-1 t``; the scale terms compare
-        ``log`` scales (zero in rigid mode).
+        a scalar (batch mean). The rotation L1 is the geodesic angle (wrap-safe); the scale terms compare ``log``
+        scales (zero in rigid mode); the translation terms compare the stage's own shift with ``A^-1 t``, ``A`` the
+        estimated ``scale * rotation`` (detached) that compensated the moving volume before the stage: the shift
+        that brings the true ``t`` back, in the frame the stage actually measured in (``(scale R)^-1 t`` once the
+        rotation and scale are right).
     """
     weights = weights or LossWeights()
     terms = {
         "rotation_kl": rotation_kl(result.rotation_log_prob, target.rotation, weights.rotation_sigma),
         "rotation_l1": geodesic_distance(result.rotation, target.rotation.to(result.rotation.dtype)),
     }
-    linear = target.scale[:, None, None] * target.rotation
-    true_shift = torch.linalg.solve(linear.to(result.translation.dtype), target.translation[..., None].to(
-        result.translation.dtype))[..., 0]
+    linear = (result.scale[:, None, None] * result.rotation).detach()
+    true_shift = torch.linalg.solve(linear, target.translation[..., None].to(linear.dtype))[..., 0]
     estimate = result.translation_estimate
     terms["translation_kl"] = shift_kl(estimate.peak.log_prob, true_shift, weights.shift_sigma)
     terms["translation_l1"] = (estimate.shift - true_shift).abs().sum(-1)

@@ -23,10 +23,10 @@ class ScaleEstimate:
     """Result of :func:`log_polar_scale`.
 
     Attributes:
-        scale: ``(B, K)`` ``mu`` of ``fixed(p) ~ moving(mu R p + t)`` for each of ``K`` rotations.
+        scale: ``(batch, K)`` ``mu`` of ``fixed(p) ~ moving(mu R p + t)`` for each of ``K`` rotations.
         peak: the soft arg-max over log-radius lags, batch ``B * K`` (in bins; ``log mu = -shift * bin``).
         bin: ``log r`` step of one lag, so the KL loss can place the ground truth on the lag grid.
-        height: ``(B, K)`` normalised correlation at the chosen lag, in ``[-1, 1]``.
+        height: ``(batch, K)`` normalised correlation at the chosen lag, in ``[-1, 1]``.
     """
 
     scale: Tensor
@@ -58,9 +58,9 @@ def log_polar_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, rotation:
     (quadrature-weighted) before the arg-max, so every direction votes for one shift.
 
     Args:
-        fixed_magnitude: ``(B, N, N, N)`` ``fftshift``-ed magnitude spectrum of the fixed volume.
-        moving_magnitude: ``(B, N, N, N)`` same for the moving volume.
-        rotation: ``(B, K, 3, 3)`` candidate rotations of ``fixed(p) ~ moving(mu R p + t)``.
+        fixed_magnitude: ``(batch, N, N, N)`` ``fftshift``-ed magnitude spectrum of the fixed volume.
+        moving_magnitude: ``(batch, N, N, N)`` same for the moving volume.
+        rotation: ``(batch, K, 3, 3)`` candidate rotations of ``fixed(p) ~ moving(mu R p + t)``.
         band: radii of the profiles, fractions of the Nyquist radius.
         samples: log-spaced samples per profile.
         temperature: softmax temperature over lags.
@@ -78,22 +78,22 @@ def log_polar_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, rotation:
     """
     batch, count = rotation.shape[:2]
     directions = sphere_directions(directions_bandwidth, device=rotation.device, dtype=rotation.dtype)
-    moving_dirs = torch.einsum("bkij,...j->bk...i", rotation, directions)  # (B, K, 2b, 2b, 3)
+    moving_dirs = torch.einsum("bkij,...j->bk...i", rotation, directions)  # (batch, K, 2b, 2b, 3)
     radii = log_radii(fixed_magnitude.shape[-1], band, samples, device=rotation.device, dtype=rotation.dtype)
     taper = torch.hann_window(samples, periodic=False, device=radii.device, dtype=radii.dtype)
     fixed = detrend(radial_profiles(fixed_magnitude, directions.expand(batch, *directions.shape), radii)) * taper
     moving = detrend(radial_profiles(moving_magnitude, moving_dirs, radii)) * taper
-    fixed_spec = torch.fft.rfft(fixed, n=2 * samples, dim=-1)[:, None]  # (B, 1, 2b, 2b, R + 1)
-    moving_spec = torch.fft.rfft(moving, n=2 * samples, dim=-1)  # (B, K, 2b, 2b, R + 1)
+    fixed_spec = torch.fft.rfft(fixed, n=2 * samples, dim=-1)[:, None]  # (batch, 1, 2b, 2b, R + 1)
+    moving_spec = torch.fft.rfft(moving, n=2 * samples, dim=-1)  # (batch, K, 2b, 2b, R + 1)
     weights = quadrature_weights(directions_bandwidth, device=radii.device, dtype=radii.dtype)[:, None]
-    spectrum = (moving_spec * fixed_spec.conj() * weights[..., None]).sum((2, 3)).flatten(0, 1)  # (B K, R + 1)
+    spectrum = (moving_spec * fixed_spec.conj() * weights[..., None]).sum((2, 3)).flatten(0, 1)  # (batch K, R + 1)
     energy = ((fixed ** 2).sum(-1) * weights).sum((1, 2))[:, None] * ((moving ** 2).sum(-1) * weights).sum((2, 3))
     spectrum = spectrum / (energy.sqrt().flatten() + torch.finfo(energy.dtype).eps)[:, None]
     sizes = (2 * samples,)
     step = log_radius_step(band, samples)
     reach = min(samples - 1, math.ceil(math.log(max_scale) / step))  # lags of plausible scales only
     surface = correlation_surface(spectrum, sizes)[:, samples - reach:samples + reach + 1]
-    peak = soft_argmax(surface, temperature, dim=1, half_width=1, periodic=(False,))
+    peak = soft_argmax(surface, temperature, dim=1, periodic=(False,))
     if refine:
         shift, height = refine_peak(spectrum, peak.index, sizes, upsample=upsample)
     else:

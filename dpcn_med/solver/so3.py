@@ -1,7 +1,7 @@
 """Step 3 of DPC, second half: SO(3) correlation of two spheres, its peaks and their soft arg-max.
 
 Euler grid (SOFT): ``alpha_i = 2 pi i / 2B``, ``beta_k = pi (2k + 1) / 4B``, ``gamma_j = 2 pi j / 2B``; correlation
-grids are ``(B, 2B, 2B, 2B)`` indexed ``[alpha, beta, gamma]``. Rotations are ZYZ as in :mod:`dpcn_med.geometry`.
+grids are ``(batch, 2B, 2B, 2B)`` indexed ``[alpha, beta, gamma]``. Rotations are ZYZ as in :mod:`dpcn_med.geometry`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,9 @@ import torch
 from torch import Tensor
 
 from dpcn_med.geometry import axis_angle_to_matrix, euler_zyz_to_matrix, geodesic_distance, project_to_rotation
-from dpcn_med.solver.sphere import sample_sphere
+from dpcn_med.solver.harmonics import order_columns
+from dpcn_med.solver.phase_correlation import window_softmax
+from dpcn_med.solver.sphere import sample_sphere, soft_colatitude, sphere_mean_weights
 from dpcn_med.solver.wigner import correlation_table
 
 
@@ -21,16 +23,17 @@ def euler_grid(bandwidth: int, *, device: torch.device | None = None, dtype: tor
     """``(alpha, beta, gamma)`` of the SOFT Euler grid, each ``(2B,)`` radians."""
     index = torch.arange(2 * bandwidth, device=device, dtype=dtype)
     step = math.pi / bandwidth
-    return index * step, math.pi * (2 * index + 1) / (4 * bandwidth), index * step
+    return index * step, soft_colatitude(index, bandwidth), index * step
 
 
 def grid_rotations(bandwidth: int, index: Tensor) -> Tensor:
-    """Rotation matrices of Euler grid cells: ``index (..., 3)`` integer ``[alpha, beta, gamma]`` -> ``(..., 3, 3)``.
+    """Rotation matrices of Euler grid cells: ``index (..., 3)`` ``[alpha, beta, gamma]`` -> ``(..., 3, 3)``.
 
-    Indices may be fractional or out of range; alpha and gamma are periodic.
+    ``index`` is a float tensor in the dtype wanted for the result; cells may be fractional or out of range (alpha and
+    gamma are periodic).
     """
     step = math.pi / bandwidth
-    angles = torch.stack([index[..., 0] * step, (2 * index[..., 1] + 1) * step / 4, index[..., 2] * step], -1)
+    angles = torch.stack([index[..., 0] * step, soft_colatitude(index[..., 1], bandwidth), index[..., 2] * step], -1)
     return euler_zyz_to_matrix(angles)
 
 
@@ -51,10 +54,10 @@ def _contract(table: Tensor, values: Tensor) -> Tensor:
     Args:
         table: ``(M N, K_out, K_in)`` real, e.g. ``d^l_mn(beta_k)`` as ``[mn, k, l]``, or its transpose for the
             adjoint.
-        values: ``(B, K_in, M, N)`` complex.
+        values: ``(batch, K_in, M, N)`` complex.
 
     Returns:
-        ``(B, K_out, M, N)`` complex: ``out[b, k, m, n] = sum_i table[mn, k, i] values[b, i, m, n]``.
+        ``(batch, K_out, M, N)`` complex: ``out[b, k, m, n] = sum_i table[mn, k, i] values[b, i, m, n]``.
     """
     batch, inner, rows, cols = values.shape
     stacked = torch.view_as_real(values.permute(2, 3, 1, 0).reshape(rows * cols, inner, batch))
@@ -66,7 +69,7 @@ def _contract(table: Tensor, values: Tensor) -> Tensor:
 class _WignerSum(torch.autograd.Function):
     """``F[b, k, m, n] = sum_l d^l_mn(beta_k) S1[b, l, m] conj(S2[b, l, n])`` for all ``2B`` betas and ``n >= 0``.
 
-    A custom Function so that backward keeps only the two coefficient sets, not the ``(B, L, M, N)`` products. The
+    A custom Function so that backward keeps only the two coefficient sets, not the ``(batch, L, M, N)`` products. The
     table of :func:`dpcn_med.solver.wigner.correlation_table` holds the first half of the betas; the second half uses
     ``d^l_mn(pi - beta) = (-1)^(l + m) d^l_m,-n(beta) = (-1)^n d^l_-m,n(beta)`` (``l`` even).
     """
@@ -75,7 +78,7 @@ class _WignerSum(torch.autograd.Function):
     def forward(ctx, first: Tensor, second: Tensor, table: Tensor) -> Tensor:
         ctx.save_for_backward(first, second, table)
         top = first.shape[-1] // 2
-        pairs = first[..., :, None] * second[..., top:].conj()[..., None, :]  # (B, L, 2M + 1, M + 1)
+        pairs = first[..., :, None] * second[..., top:].conj()[..., None, :]  # (batch, L, 2M + 1, M + 1)
         low = _contract(table, pairs)
         high = _column_signs(pairs) * _flip_rows(_contract(table, _flip_rows(pairs)))
         return torch.cat([low, high.flip(1)], dim=1)
@@ -98,13 +101,13 @@ def so3_correlation(moving_coeffs: Tensor, fixed_coeffs: Tensor, bandwidth: int)
     """Normalised correlation of two real spheres over the SOFT Euler grid, by an inverse SO(3) Fourier transform.
 
     Args:
-        moving_coeffs: ``(B, L, 2M + 1)`` complex SH coefficients of the moving sphere, even degrees 2..B-1 as
+        moving_coeffs: ``(batch, L, 2M + 1)`` complex SH coefficients of the moving sphere, even degrees 2..B-1 as
             :func:`dpcn_med.solver.harmonics.even_degrees`.
         fixed_coeffs: same for the fixed sphere.
         bandwidth: ``B``.
 
     Returns:
-        ``(B, 2B, 2B, 2B)`` real correlation ``C(R) = <s_moving, L_R s_fixed> / (|s_moving| |s_fixed|)`` in
+        ``(batch, 2B, 2B, 2B)`` real correlation ``C(R) = <s_moving, L_R s_fixed> / (|s_moving| |s_fixed|)`` in
         ``[-1, 1]``, indexed ``[alpha, beta, gamma]``.
 
     Convention:
@@ -119,14 +122,14 @@ def so3_correlation(moving_coeffs: Tensor, fixed_coeffs: Tensor, bandwidth: int)
         Kostelec and Rockmore, "FFTs on the rotation group", 2008; Chen et al., DPCN++, 2024, eq. 7.
     """
     table = correlation_table(bandwidth, moving_coeffs.device, moving_coeffs.real.dtype)
-    spectrum = _WignerSum.apply(moving_coeffs, fixed_coeffs, table)  # (B, 2B, 2M + 1, M + 1)
+    spectrum = _WignerSum.apply(moving_coeffs, fixed_coeffs, table)  # (batch, 2B, 2M + 1, M + 1)
     batch, betas, rows, cols = spectrum.shape
     columns = 2 * bandwidth
-    orders = torch.remainder(torch.arange(-(rows // 2), rows // 2 + 1, device=spectrum.device), columns)
+    orders = order_columns(rows // 2, columns, spectrum.device)
     padded = spectrum.new_zeros(batch, betas, rows, bandwidth + 1)
     padded[..., :cols] = spectrum
     padded = spectrum.new_zeros(batch, betas, columns, bandwidth + 1).index_copy(2, orders, padded)
-    correlation = torch.fft.irfft2(padded, s=(columns, columns), norm="forward")  # (B, beta, alpha, gamma)
+    correlation = torch.fft.irfft2(padded, s=(columns, columns), norm="forward")  # (batch, beta, alpha, gamma)
     norm = moving_coeffs.abs().square().sum((-2, -1)).sqrt() * fixed_coeffs.abs().square().sum((-2, -1)).sqrt()
     correlation = correlation / (norm + torch.finfo(correlation.dtype).eps)[:, None, None, None]
     return correlation.permute(0, 2, 1, 3)
@@ -140,7 +143,7 @@ def haar_log_density(bandwidth: int, *, device: torch.device | None = None, dtyp
 
 
 def so3_log_prob(correlation: Tensor, temperature: Tensor | float) -> Tensor:
-    """Haar-weighted log-softmax over the Euler grid: ``(B, 2B, 2B, 2B)`` -> same, ``log p`` summing to one per item.
+    """Haar-weighted log-softmax over the Euler grid: ``(batch, 2B, 2B, 2B)`` -> same, summing to one per item.
 
     Logits are ``C / temperature + log sin(beta)``: the Euler grid is denser near the poles, ``sin(beta)`` restores
     the uniform (Haar) measure on SO(3).
@@ -155,11 +158,12 @@ def so3_peaks(correlation: Tensor, count: int) -> Tensor:
     """The ``count`` highest local maxima (3x3x3 neighbourhoods) of an Euler-grid correlation.
 
     Args:
-        correlation: ``(B, 2B, 2B, 2B)`` ``[alpha, beta, gamma]``.
+        correlation: ``(batch, 2B, 2B, 2B)`` ``[alpha, beta, gamma]``.
         count: ``K``, peaks per batch item.
 
     Returns:
-        ``(B, K, 3)`` integer grid indices ``[alpha, beta, gamma]``, best first. Alpha and gamma wrap; beta does not.
+        ``(batch, K, 3)`` integer grid indices ``[alpha, beta, gamma]``, best first. Alpha and gamma wrap; beta does
+        not.
     """
     # A separable running maximum with rolls: on the CPU about 20 times faster than max_pool3d on this grid.
     neighbourhood = correlation
@@ -180,13 +184,14 @@ def soft_argmax_so3(correlation: Tensor, peaks: Tensor, temperature: Tensor | fl
     """Soft arg-max on SO(3) in a window around each peak: the weighted mean rotation, projected onto SO(3).
 
     Args:
-        correlation: ``(B, 2B, 2B, 2B)`` ``[alpha, beta, gamma]``.
-        peaks: ``(B, K, 3)`` integer indices, as from :func:`so3_peaks`.
+        correlation: ``(batch, 2B, 2B, 2B)`` ``[alpha, beta, gamma]``.
+        peaks: ``(batch, K, 3)`` integer indices, as from :func:`so3_peaks`.
         temperature: positive scalar; lower is sharper.
         half_width: the window spans ``2 * half_width + 1`` cells per Euler angle.
 
     Returns:
-        ``(rotation, mass)``: ``(B, K, 3, 3)`` rotations and ``(B, K)`` softmax mass of each window, in ``[0, 1]``.
+        ``(rotation, mass)``: ``(batch, K, 3, 3)`` rotations and ``(batch, K)`` softmax mass of each window, in
+        ``[0, 1]``.
 
     Notes:
         Logits are ``C / temperature + log sin(beta)`` (the Euler grid's Haar density); alpha and gamma wrap, window
@@ -196,18 +201,15 @@ def soft_argmax_so3(correlation: Tensor, peaks: Tensor, temperature: Tensor | fl
     batch, count, _ = peaks.shape
     size = correlation.shape[-1]
     bandwidth = size // 2
-    log_prob = so3_log_prob(correlation, temperature)
+    log_prob = so3_log_prob(correlation, temperature).flatten(1)
     ticks = torch.arange(-half_width, half_width + 1, device=correlation.device)
     offsets = torch.stack(torch.meshgrid(ticks, ticks, ticks, indexing="ij"), -1).reshape(-1, 3)
-    cells = peaks[:, :, None, :] + offsets  # (B, K, W, 3)
+    cells = peaks[:, :, None, :] + offsets  # (batch, K, W, 3)
     valid = (cells[..., 1] >= 0) & (cells[..., 1] < size)
     wrapped = torch.stack([torch.remainder(cells[..., 0], size), cells[..., 1].clamp(0, size - 1),
                            torch.remainder(cells[..., 2], size)], -1)
     flat = (wrapped[..., 0] * size + wrapped[..., 1]) * size + wrapped[..., 2]
-    window = log_prob.flatten(1).gather(1, flat.flatten(1)).reshape(flat.shape)
-    window = window.masked_fill(~valid, float("-inf"))
-    mass = torch.logsumexp(window, -1).exp().clamp(0.0, 1.0)
-    weights = torch.softmax(window, -1)
+    mass, weights = window_softmax(log_prob, flat, valid)
     rotations = grid_rotations(bandwidth, wrapped.to(correlation.dtype))
     mean = (weights[..., None, None] * rotations).sum(-3)
     return project_to_rotation(mean), mass
@@ -218,20 +220,20 @@ def sphere_correlation(moving_sphere: Tensor, fixed_sphere: Tensor, weights: Ten
     """``<s_moving, L_R s_fixed>`` for arbitrary rotations, by interpolating the fixed sphere at ``R^T u``.
 
     Args:
-        moving_sphere: ``(B, 2B, 2B)`` normalised moving sphere.
-        fixed_sphere: ``(B, 2b, 2b)`` normalised fixed sphere, any bandwidth ``b`` (finer is more accurate).
+        moving_sphere: ``(batch, 2B, 2B)`` normalised moving sphere.
+        fixed_sphere: ``(batch, 2b, 2b)`` normalised fixed sphere, any bandwidth ``b`` (finer is more accurate).
         weights: ``(2B,)`` quadrature weights of the moving grid.
         directions: ``(2B, 2B, 3)`` unit vectors of the moving grid.
-        rotation: ``(B, K, 3, 3)``.
+        rotation: ``(batch, K, 3, 3)``.
 
     Returns:
-        ``(B, K)`` correlation values, comparable with :func:`so3_correlation`.
+        ``(batch, K)`` correlation values, comparable with :func:`so3_correlation`.
     """
     batch, count = rotation.shape[:2]
     rotated = torch.einsum("bkji,...j->bk...i", rotation, directions)  # R^T u
     values = sample_sphere(fixed_sphere, rotated.reshape(batch, count, -1, 3))
     values = values.reshape(batch, count, *directions.shape[:2])
-    w = weights[:, None] / (weights.sum() * directions.shape[1])
+    w = sphere_mean_weights(weights, directions.shape[1])
     return (values * (moving_sphere * w)[:, None]).sum((-2, -1))
 
 
@@ -245,12 +247,12 @@ def refine_rotation(moving_sphere: Tensor, fixed_sphere: Tensor, weights: Tensor
 
     Args:
         moving_sphere, fixed_sphere, weights, directions: as :func:`sphere_correlation`.
-        rotation: ``(B, K, 3, 3)`` starting points.
+        rotation: ``(batch, K, 3, 3)`` starting points.
         step: initial ``h`` in radians (about one grid cell).
         iterations: number of halvings.
 
     Returns:
-        ``(rotation, score)``: refined ``(B, K, 3, 3)`` and their ``(B, K)`` correlation.
+        ``(rotation, score)``: refined ``(batch, K, 3, 3)`` and their ``(batch, K)`` correlation.
     """
     eye = torch.eye(3, device=rotation.device, dtype=rotation.dtype)
     basis = torch.cat([eye, -eye])  # (6, 3)
@@ -258,7 +260,7 @@ def refine_rotation(moving_sphere: Tensor, fixed_sphere: Tensor, weights: Tensor
     score = sphere_correlation(moving_sphere, fixed_sphere, weights, directions, current)
     h = step
     for _ in range(iterations):
-        probes = current[:, :, None] @ axis_angle_to_matrix(h * basis)  # (B, K, 6, 3, 3)
+        probes = current[:, :, None] @ axis_angle_to_matrix(h * basis)  # (batch, K, 6, 3, 3)
         batch, count = current.shape[:2]
         values = sphere_correlation(moving_sphere, fixed_sphere, weights, directions,
                                     probes.reshape(batch, count * 6, 3, 3)).reshape(batch, count, 2, 3)
@@ -279,14 +281,14 @@ def deduplicate(rotation: Tensor, score: Tensor, tolerance: float) -> Tensor:
     """Mask of rotations that are not within ``tolerance`` radians of a better-scored one.
 
     Args:
-        rotation: ``(B, K, 3, 3)``.
-        score: ``(B, K)``.
+        rotation: ``(batch, K, 3, 3)``.
+        score: ``(batch, K)``.
         tolerance: radians.
 
     Returns:
-        ``(B, K)`` boolean, True for the ones to keep.
+        ``(batch, K)`` boolean, True for the ones to keep.
     """
-    distance = geodesic_distance(rotation[:, :, None], rotation[:, None, :])  # (B, K, K)
+    distance = geodesic_distance(rotation[:, :, None], rotation[:, None, :])  # (batch, K, K)
     count = score.shape[1]
     index = torch.arange(count, device=score.device)
     better = (score[:, None, :] > score[:, :, None]) | ((score[:, None, :] == score[:, :, None])

@@ -21,11 +21,11 @@ class Solve2dResult:
     """Pose found by :func:`solve2d`: ``fixed(p) ~ moving(scale * rotation @ p + translation)``.
 
     Attributes:
-        rotation: ``(B, 2, 2)`` ``moving_from_fixed`` rotation acting on pixel ``(x, y)`` from the grid centre.
-        angle: ``(B,)`` its angle in radians, ``[-pi, pi)``, counter-clockwise.
-        scale: ``(B,)`` (ones in rigid mode).
-        translation: ``(B, 2)`` pixels, order ``(x, y)``.
-        confidence: ``(B,)`` in ``[0, 1]``: softmax mass of the chosen translation peak.
+        rotation: ``(batch, 2, 2)`` ``moving_from_fixed`` rotation acting on pixel ``(x, y)`` from the grid centre.
+        angle: ``(batch,)`` its angle in radians, ``[-pi, pi)``, counter-clockwise.
+        scale: ``(batch,)`` (ones in rigid mode).
+        translation: ``(batch, 2)`` pixels, order ``(x, y)``.
+        confidence: ``(batch,)`` in ``[0, 1]``: softmax mass of the chosen translation peak.
         log_polar_estimate: the first (global) log-polar pass.
         translation_estimate: the translation stage of the last pass.
     """
@@ -44,8 +44,8 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
     """Globally register two images on the same square grid by phase correlation (4 or 3 DoF).
 
     Args:
-        fixed: ``(B, 1, N, N)`` real grid (torch order y, x), ``N`` even.
-        moving: ``(B, 1, N, N)`` same shape, device and dtype.
+        fixed: ``(batch, 1, N, N)`` real grid (torch order y, x), ``N`` even.
+        moving: ``(batch, 1, N, N)`` same shape, device and dtype.
         mode: ``"similarity"`` (rotation, scale, translation) or ``"rigid"`` (scale fixed to 1).
         config: settings; defaults to :class:`SolverConfig` (the ``log_polar_*`` and ``iterations`` fields).
         temperatures: ``rotation`` is used for the log-polar correlation, ``translation`` for the translation.
@@ -89,7 +89,7 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
         step_scale = estimate.scale if mode == "similarity" else torch.ones_like(estimate.scale)
         if iteration == 0:
             first = estimate
-            twins = torch.stack([estimate.angle, estimate.angle + math.pi], 1)  # (B, 2)
+            twins = torch.stack([estimate.angle, estimate.angle + math.pi], 1)  # (batch, 2)
             heights = []
             for k in range(2):
                 trial = step_scale[:, None, None] * rotation_2d(twins[:, k])

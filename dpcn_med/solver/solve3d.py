@@ -35,15 +35,16 @@ class SolveResult:
     """Pose found by :func:`solve`: ``fixed(p) ~ moving(scale * rotation @ p + translation)``.
 
     Attributes:
-        rotation: ``(B, 3, 3)`` ``moving_from_fixed`` rotation acting on voxel ``(x, y, z)`` from the grid centre.
-        scale: ``(B,)`` isotropic scale (ones in rigid mode).
-        translation: ``(B, 3)`` voxels, order ``(x, y, z)``.
-        confidence: ``(B,)`` in ``[0, 1]``: softmax mass of the translation peak of the chosen candidate.
-        rotation_log_prob: ``(B, 2B, 2B, 2B)`` log-softmax over the Euler grid ``[alpha, beta, gamma]`` (Haar-weighted),
+        rotation: ``(batch, 3, 3)`` ``moving_from_fixed`` rotation acting on voxel ``(x, y, z)`` from the grid centre.
+        scale: ``(batch,)`` isotropic scale (ones in rigid mode).
+        translation: ``(batch, 3)`` voxels, order ``(x, y, z)``.
+        confidence: ``(batch,)`` in ``[0, 1]``: softmax mass of the translation peak of the chosen candidate.
+        rotation_log_prob: ``(batch, 2B, 2B, 2B)`` log-softmax over the Euler grid ``[alpha, beta, gamma]``
+            (Haar-weighted),
             for the rotation KL loss.
         scale_estimate: the scale stage of the chosen candidate (``None`` in rigid mode).
         translation_estimate: the translation stage of the chosen candidate (shift before ``scale * rotation``).
-        candidates: ``(B,)`` number of distinct rotation candidates that were scored.
+        candidates: ``(batch,)`` number of rotation candidates left after dropping near-duplicates.
         timings: seconds per stage when ``profile=True`` (empty otherwise).
     """
 
@@ -58,15 +59,16 @@ class SolveResult:
     timings: dict[str, float]
 
 
-def _spheres(fixed: Tensor, moving: Tensor, config: SolverConfig, bandwidth: int
+def _spheres(fixed: Tensor, moving: Tensor, config: SolverConfig, directions: Tensor, weights: Tensor
              ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Magnitude spectra ``(B, N, N, N)`` and normalised spheres ``(B, 2B, 2B)`` of both volumes."""
+    """Magnitude spectra ``(batch, N, N, N)`` and normalised spheres ``(batch, 2B, 2B)`` of both volumes.
+
+    ``directions (2B, 2B, 3)`` and ``weights (2B,)`` are the SOFT grid's unit vectors and quadrature weights.
+    """
     size = fixed.shape[-1]
     fixed_magnitude = magnitude_spectrum(fixed, 3, config.taper)
     moving_magnitude = magnitude_spectrum(moving, 3, config.taper)
     radii = log_radii(size, config.sphere_band, config.sphere_radii, device=fixed.device, dtype=fixed.dtype)
-    directions = sphere_directions(bandwidth, device=fixed.device, dtype=fixed.dtype)
-    weights = quadrature_weights(bandwidth, device=fixed.device, dtype=fixed.dtype)
     batch_directions = directions.expand(fixed.shape[0], *directions.shape)
     fixed_sphere = normalize_sphere(to_sphere(fixed_magnitude, batch_directions, radii,
                                               log_magnitude=config.log_magnitude), weights)
@@ -76,19 +78,20 @@ def _spheres(fixed: Tensor, moving: Tensor, config: SolverConfig, bandwidth: int
 
 
 def _with_half_turns(rotation: Tensor) -> Tensor:
-    """``(B, K, 3, 3)`` -> ``(B, 7K, 3, 3)``: each rotation, then composed with the three half-turns on either side.
+    """``(batch, K, 3, 3)`` -> ``(batch, 7K, 3, 3)``: each rotation, then with the three half-turns on either side.
 
     A half-turn on the right is about a fixed-grid axis, on the left about a moving-grid axis: whichever volume has its
     mirror plane along the grid, the ambiguous twin of ``R`` is among these.
     """
     turns = half_turns(device=rotation.device, dtype=rotation.dtype)
-    right = rotation[:, :, None] @ turns  # (B, K, 4, 3, 3), the first is R itself
-    left = turns[1:] @ rotation[:, :, None]  # (B, K, 3, 3, 3)
+    right = rotation[:, :, None] @ turns  # (batch, K, 4, 3, 3), the first is R itself
+    left = turns[1:] @ rotation[:, :, None]  # (batch, K, 3, 3, 3)
     return torch.cat([right, left], dim=2).flatten(1, 2)
 
 
 def _downsample(volume: Tensor, size: int) -> Tensor:
-    """Average-pool ``(B, N, N, N)`` to ``(B, size, size, size)`` when ``N`` is a multiple of ``size``; else as is."""
+    """Average-pool ``(batch, N, N, N)`` to ``(batch, n, n, n)``, ``n = size``, when ``N`` is a multiple of it; else as
+    is."""
     factor = volume.shape[-1] // size
     if factor <= 1 or volume.shape[-1] % size:
         return volume
@@ -96,7 +99,7 @@ def _downsample(volume: Tensor, size: int) -> Tensor:
 
 
 def _candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, taper: float) -> Tensor:
-    """Phase-correlation peak of each candidate on a downsampled grid: ``linear (B, K, 3, 3)`` -> ``(B, K)``.
+    """Phase-correlation peak of each candidate on a downsampled grid: ``linear (batch, K, 3, 3)`` -> ``(batch, K)``.
 
     The peak height measures how well the whole volume (not only its spectrum) agrees once rotated and scaled: it is
     what tells a rotation from its mirror twin.
@@ -105,7 +108,7 @@ def _candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, 
     coarse_moving = _downsample(moving, size)
     batch, count = linear.shape[:2]
     sizes = tuple(coarse_moving.shape[-3:])
-    warped = sample(coarse_moving[:, None], affine_points(sizes, linear))[:, 0]  # (B, K, n, n, n)
+    warped = sample(coarse_moving[:, None], affine_points(sizes, linear))[:, 0]  # (batch, K, n, n, n)
     fixed_batch = apodize(coarse_fixed, 3, taper)[:, None].expand(batch, count, *sizes).flatten(0, 1)
     surface, _ = phase_correlation(fixed_batch, apodize(warped.flatten(0, 1), 3, taper), 3)
     return surface.flatten(1).max(-1).values.reshape(batch, count)
@@ -113,7 +116,7 @@ def _candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, 
 
 def _choose_candidate(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score: Tensor, keep: Tensor,
                       config: SolverConfig) -> Tensor:
-    """Index ``(B,)`` of the best candidate ``linear (B, K, 3, 3)`` (scaled rotations).
+    """Index ``(batch,)`` of the best candidate ``linear (batch, K, 3, 3)`` (scaled rotations).
 
     Candidates whose sphere correlation falls more than ``sphere_margin`` below the best are implausible; the rest
     are scored by their translation peak on a coarse grid, and the ``finalists`` best are scored again on a finer one.
@@ -136,8 +139,8 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
     """Globally register two volumes on the same cubic grid by differentiable phase correlation (DPC).
 
     Args:
-        fixed: ``(B, 1, N, N, N)`` real grid (torch order z, y, x), ``N`` even.
-        moving: ``(B, 1, N, N, N)`` same shape, device and dtype.
+        fixed: ``(batch, 1, N, N, N)`` real grid (torch order z, y, x), ``N`` even.
+        moving: ``(batch, 1, N, N, N)`` same shape, device and dtype.
         mode: ``"similarity"`` (rotation, isotropic scale, translation: 7 DoF) or ``"rigid"`` (6 DoF).
         config: settings; defaults to :class:`SolverConfig`.
         temperatures: softmax temperatures; defaults to :class:`StageTemperatures`.
@@ -177,8 +180,10 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
 
     clock = StageClock(fixed.device, config.profile)
     with clock("spectrum and sphere"):
+        directions = sphere_directions(bandwidth, device=fixed.device, dtype=fixed.dtype)
+        weights = quadrature_weights(bandwidth, device=fixed.device, dtype=fixed.dtype)
         fixed_magnitude, moving_magnitude, fixed_sphere, moving_sphere = _spheres(
-            fixed_volume, moving_volume, config, bandwidth)
+            fixed_volume, moving_volume, config, directions, weights)
         degrees = even_degrees(bandwidth)
         fixed_coeffs = sht(fixed_sphere, degrees)
         moving_coeffs = sht(moving_sphere, degrees)
@@ -190,15 +195,12 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
                                            half_width=config.rotation_half_width)
         candidates = _with_half_turns(peak_rotation) if config.half_turns else peak_rotation
     count = candidates.shape[1]
-    weights = quadrature_weights(bandwidth, device=fixed.device, dtype=fixed.dtype)
-    directions = sphere_directions(bandwidth, device=fixed.device, dtype=fixed.dtype)
 
     def scale_stage(rotation: Tensor) -> ScaleEstimate:
-        """Scale for ``(B, K, 3, 3)`` rotations."""
+        """Scale for ``(batch, K, 3, 3)`` rotations."""
         return log_polar_scale(fixed_magnitude, moving_magnitude, rotation, config.scale_band, config.scale_radii,
-                               temperatures.scale,
-                               directions_bandwidth=config.scale_bandwidth, max_scale=config.max_scale,
-                               refine=config.refine, upsample=config.upsample)
+                               temperatures.scale, directions_bandwidth=config.scale_bandwidth,
+                               max_scale=config.max_scale, refine=config.refine, upsample=config.upsample)
 
     with clock("candidates"), torch.no_grad():
         sphere_score = sphere_correlation(moving_sphere, fixed_sphere, weights, directions, candidates)
@@ -210,8 +212,8 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         best = _choose_candidate(fixed_volume, moving_volume, candidate_scale[..., None, None] * candidates,
                                  sphere_score, keep, config)
     rotation = candidates[torch.arange(batch, device=fixed.device), best]
-    if config.refine:
-        with clock("rotation refinement"):
+    if config.refine:  # inference only: a local search has no useful gradient, so build no graph for it
+        with clock("rotation refinement"), torch.no_grad():
             fine_sphere = isht(fixed_coeffs, degrees, bandwidth * config.refine_oversample)  # band-limited, finely
             rotation, _ = refine_rotation(moving_sphere, fine_sphere, weights, directions, rotation[:, None],
                                           step=math.pi / bandwidth, iterations=config.refine_iterations)

@@ -40,12 +40,12 @@ def apodize(volume: Tensor, dim: int, taper: float) -> Tensor:
     window's own spectrum, which correlates perfectly with itself.
 
     Args:
-        volume: ``(B, *S)`` real, ``S`` the last ``dim`` axes.
+        volume: ``(batch, *S)`` real, ``S`` the last ``dim`` axes.
         dim: 2 or 3.
         taper: see :func:`spherical_window`.
 
     Returns:
-        ``(B, *S)``; exactly zero for a constant volume.
+        ``(batch, *S)``; exactly zero for a constant volume.
     """
     window = spherical_window(tuple(volume.shape[-dim:]), taper, device=volume.device, dtype=volume.dtype)
     axes = tuple(range(-dim, 0))
@@ -61,12 +61,12 @@ def magnitude_spectrum(volume: Tensor, dim: int, taper: float) -> Tensor:
     """``|FFT|`` of the apodised volume, ``fftshift``-ed so that the zero frequency sits at the grid centre.
 
     Args:
-        volume: ``(B, *S)`` real.
+        volume: ``(batch, *S)`` real.
         dim: 2 or 3.
         taper: see :func:`spherical_window`.
 
     Returns:
-        ``(B, *S)`` non-negative, invariant to translations of the content (up to the window).
+        ``(batch, *S)`` non-negative, invariant to translations of the content (up to the window).
 
     Notes:
         If ``g1(p) = g2(mu R p + t)`` then ``|G1(k)| = mu^-d |G2(R k / mu)|`` (frequency ``k`` in cycles per grid, from

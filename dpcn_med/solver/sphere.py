@@ -14,12 +14,34 @@ from torch import Tensor
 
 from dpcn_med.geometry import sample
 
+# log |G| is floored at LOG_FLOOR * mean |G|: the log of the spectrum's near-empty corners would otherwise be noise
+# with an unbounded negative range.
+LOG_FLOOR = 1e-3
+
+
+def soft_colatitude(index: Tensor, bandwidth: int) -> Tensor:
+    """``pi (2j + 1) / 4B``: the SOFT colatitudes ``theta_j``, which are also the Euler grid's betas (any ``j``, even
+    fractional)."""
+    return math.pi * (2 * index + 1) / (4 * bandwidth)
+
 
 def sphere_angles(bandwidth: int, *, device: torch.device | None = None, dtype: torch.dtype | None = None
                   ) -> tuple[Tensor, Tensor]:
     """``(theta, phi)`` of the SOFT grid, each ``(2B,)`` radians."""
     index = torch.arange(2 * bandwidth, device=device, dtype=dtype)
-    return math.pi * (2 * index + 1) / (4 * bandwidth), 2 * math.pi * index / (2 * bandwidth)
+    return soft_colatitude(index, bandwidth), 2 * math.pi * index / (2 * bandwidth)
+
+
+def sphere_mean_weights(weights: Tensor, columns: int) -> Tensor:
+    """Per-cell weights ``(2B, 1)`` of the mean over the sphere: ``sum(values * w)`` is the average of ``values``."""
+    return weights[:, None] / (weights.sum() * columns)
+
+
+def floored_log(values: Tensor, magnitude: Tensor) -> Tensor:
+    """``log`` of magnitudes ``values (batch, ...)`` sampled from ``magnitude (batch, ...)``, floored
+    (:data:`LOG_FLOOR`)."""
+    floor = LOG_FLOOR * magnitude.flatten(1).mean(-1) + torch.finfo(magnitude.dtype).tiny
+    return torch.log(values + floor.reshape(-1, *([1] * (values.dim() - 1))))
 
 
 def sphere_directions(bandwidth: int, *, device: torch.device | None = None, dtype: torch.dtype | None = None
@@ -30,7 +52,7 @@ def sphere_directions(bandwidth: int, *, device: torch.device | None = None, dty
     return torch.stack(torch.broadcast_tensors(theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()), -1)
 
 
-def quadrature_weights(bandwidth: int, *, device: torch.device | None = None, dtype: torch.dtype | None = None
+def quadrature_weights(bandwidth: int, *, device: torch.device | None = None, dtype: torch.dtype = torch.float64
                        ) -> Tensor:
     """SOFT quadrature weights in ``theta``: ``(2B,)``, summing to 2 (the integral of ``sin theta``).
 
@@ -40,7 +62,7 @@ def quadrature_weights(bandwidth: int, *, device: torch.device | None = None, dt
     theta, _ = sphere_angles(bandwidth, device=device, dtype=torch.float64)
     odd = 2 * torch.arange(bandwidth, device=device, dtype=torch.float64) + 1
     weights = (2.0 / bandwidth) * theta.sin() * ((odd * theta[:, None]).sin() / odd).sum(-1)
-    return weights.to(dtype or torch.get_default_dtype())
+    return weights.to(dtype)
 
 
 def log_radii(size: int, band: tuple[float, float], count: int, *, device: torch.device | None = None,
@@ -64,33 +86,32 @@ def radial_profiles(magnitude: Tensor, directions: Tensor, radii: Tensor, *, log
     """Magnitude spectrum sampled along rays: ``f(|G|(r u))`` for every direction ``u`` and radius ``r``.
 
     Args:
-        magnitude: ``(B, N, N, N)`` ``fftshift``-ed magnitude spectrum.
-        directions: ``(B, *S, 3)`` unit vectors ``(x, y, z)``.
+        magnitude: ``(batch, N, N, N)`` ``fftshift``-ed magnitude spectrum.
+        directions: ``(batch, *S, 3)`` unit vectors ``(x, y, z)``.
         radii: ``(R,)`` radii in frequency cells (cycles per grid), as from :func:`log_radii`.
         log_magnitude: return ``log |G|`` (floored at a small fraction of the mean) rather than ``|G|``.
 
     Returns:
-        ``(B, *S, R)``, trilinear interpolation.
+        ``(batch, *S, R)``, trilinear interpolation.
     """
-    points = directions[..., None, :] * radii[:, None]  # (B, *S, R, 3)
+    points = directions[..., None, :] * radii[:, None]  # (batch, *S, R, 3)
     values = sample(magnitude[:, None], points)[:, 0]
     if not log_magnitude:
         return values
-    floor = 1e-3 * magnitude.flatten(1).mean(-1) + torch.finfo(magnitude.dtype).tiny
-    return torch.log(values + floor.reshape(-1, *([1] * (values.dim() - 1))))
+    return floored_log(values, magnitude)
 
 
 def to_sphere(magnitude: Tensor, directions: Tensor, radii: Tensor, *, log_magnitude: bool = True) -> Tensor:
     """Radial aggregation of a magnitude spectrum onto directions: ``s(u) = mean_r f(|G|(r u))``.
 
     Args:
-        magnitude: ``(B, N, N, N)`` ``fftshift``-ed magnitude spectrum.
-        directions: ``(B, *S, 3)`` unit vectors (for instance :func:`sphere_directions`, or rotated ones).
+        magnitude: ``(batch, N, N, N)`` ``fftshift``-ed magnitude spectrum.
+        directions: ``(batch, *S, 3)`` unit vectors (for instance :func:`sphere_directions`, or rotated ones).
         radii: ``(R,)`` log-spaced radii: the band-pass.
         log_magnitude: aggregate ``log |G|`` (True) or ``|G|``.
 
     Returns:
-        ``(B, *S)`` values on the sphere.
+        ``(batch, *S)`` values on the sphere.
 
     Notes:
         With ``|G1(k)| = mu^-3 |G2(R k / mu)|``, ``log |G1|`` along ``u`` is ``log |G2|`` along ``R u`` shifted by
@@ -101,13 +122,13 @@ def to_sphere(magnitude: Tensor, directions: Tensor, radii: Tensor, *, log_magni
 
 
 def normalize_sphere(sphere: Tensor, weights: Tensor) -> Tensor:
-    """Zero weighted mean, unit weighted norm: ``(B, 2B, 2B)`` -> same. A constant sphere becomes zeros, not NaN.
+    """Zero weighted mean, unit weighted norm: ``(batch, 2B, 2B)`` -> same. A constant sphere becomes zeros, not NaN.
 
     Args:
-        sphere: ``(B, 2B, 2B)`` values on the grid, ``[theta, phi]``.
+        sphere: ``(batch, 2B, 2B)`` values on the grid, ``[theta, phi]``.
         weights: ``(2B,)`` :func:`quadrature_weights`.
     """
-    w = weights[:, None] / (weights.sum() * sphere.shape[-1])
+    w = sphere_mean_weights(weights, sphere.shape[-1])
     centred = sphere - (sphere * w).sum((-2, -1), keepdim=True)
     norm = ((centred ** 2) * w).sum((-2, -1), keepdim=True).sqrt()
     return centred / (norm + torch.finfo(sphere.dtype).eps)
@@ -117,11 +138,11 @@ def sample_sphere(sphere: Tensor, directions: Tensor) -> Tensor:
     """Bilinear interpolation of grid values at arbitrary directions.
 
     Args:
-        sphere: ``(B, 2b, 2b)`` values on the SOFT grid of bandwidth ``b``, ``[theta, phi]``.
-        directions: ``(B, *S, 3)`` unit vectors ``(x, y, z)`` (not renormalised).
+        sphere: ``(batch, 2b, 2b)`` values on the SOFT grid of bandwidth ``b``, ``[theta, phi]``.
+        directions: ``(batch, *S, 3)`` unit vectors ``(x, y, z)`` (not renormalised).
 
     Returns:
-        ``(B, *S)``.
+        ``(batch, *S)``.
 
     Notes:
         ``phi`` wraps; beyond the first and last ``theta`` rows the grid continues over the pole, where the row is
@@ -132,7 +153,7 @@ def sample_sphere(sphere: Tensor, directions: Tensor) -> Tensor:
     north = sphere[:, :1].roll(half, dims=-1)
     south = sphere[:, -1:].roll(half, dims=-1)
     padded = torch.cat([north, sphere, south], dim=1)
-    padded = torch.cat([padded[..., -1:], padded, padded[..., :1]], dim=-1)  # (B, 2b + 2, 2b + 2)
+    padded = torch.cat([padded[..., -1:], padded, padded[..., :1]], dim=-1)  # (batch, 2b + 2, 2b + 2)
     x, y, z = directions.unbind(-1)
     theta = torch.acos(z.clamp(-1.0, 1.0))
     phi = torch.remainder(torch.atan2(y, x), 2 * math.pi)

@@ -15,9 +15,9 @@ class TranslationEstimate:
     """Result of :func:`phase_translation`.
 
     Attributes:
-        shift: ``(B, d)`` voxels ``(x, y[, z])`` with ``fixed(p) ~ moving(p + shift)``.
+        shift: ``(batch, d)`` voxels ``(x, y[, z])`` with ``fixed(p) ~ moving(p + shift)``.
         peak: the soft arg-max; ``peak.mass`` is the solver's confidence.
-        height: ``(B,)`` phase-correlation value at the shift, about 1 for a perfect match and near 0 for none.
+        height: ``(batch,)`` phase-correlation value at the shift, about 1 for a perfect match and near 0 for none.
     """
 
     shift: Tensor
@@ -30,8 +30,8 @@ def phase_translation(fixed: Tensor, moving: Tensor, temperature: Tensor | float
     """Shift between two volumes (or images) by phase correlation.
 
     Args:
-        fixed: ``(B, *S)`` real, ``S`` the last ``dim`` axes.
-        moving: ``(B, *S)`` real; already compensated for rotation and scale.
+        fixed: ``(batch, *S)`` real, ``S`` the last ``dim`` axes.
+        moving: ``(batch, *S)`` real; already compensated for rotation and scale.
         temperature: softmax temperature over shifts.
         dim: 2 or 3.
         taper: apodisation of :func:`dpcn_med.solver.spectrum.apodize`.
@@ -42,7 +42,7 @@ def phase_translation(fixed: Tensor, moving: Tensor, temperature: Tensor | float
         A :class:`TranslationEstimate`. Shifts are unambiguous up to half the grid per axis (they wrap beyond).
     """
     surface, spectrum = phase_correlation(apodize(fixed, dim, taper), apodize(moving, dim, taper), dim)
-    peak = soft_argmax(surface, temperature, dim, half_width=1)
+    peak = soft_argmax(surface, temperature, dim)
     if refine:
         shift, height = refine_peak(spectrum, peak.index, tuple(fixed.shape[-dim:]), upsample=upsample)
     else:

@@ -14,7 +14,7 @@ def check_grids(fixed: Tensor, moving: Tensor, dim: int) -> int:
     """Validate a pair of solver grids and return their size ``N``.
 
     Args:
-        fixed: ``(B, 1, N, N, N)`` (``dim = 3``) or ``(B, 1, N, N)`` (``dim = 2``).
+        fixed: ``(batch, 1, N, N, N)`` (``dim = 3``) or ``(batch, 1, N, N)`` (``dim = 2``).
         moving: same shape, device and dtype.
         dim: 2 or 3.
 
