@@ -198,6 +198,22 @@ def squared_distance_from_centre(sizes: tuple[int, ...], *, device: torch.device
         [-1 if a == axis else 1 for a in range(len(sizes))]) for axis, n in enumerate(sizes))
 
 
+def _grid_sample(volume: Tensor, grid: Tensor) -> Tensor:
+    """``grid_sample`` (trilinear, zero outside) at normalised coordinates ``grid (B, *S, d)`` -> ``(B, C, *S)``."""
+    dim = volume.dim() - 2
+    batch, sample_shape = grid.shape[0], grid.shape[1:-1]
+    grid = grid.reshape(batch, -1, dim)
+    # PyTorch's CPU grid_sample parallelises over the batch only: for a single volume, split its points into one chunk
+    # per thread (measured 1.6x faster on two cores at 128^3) and sample them against a stride-0 view of the volume.
+    chunks = torch.get_num_threads() if volume.device.type == "cpu" and dim == 3 and batch == 1 else 1
+    chunks = chunks if grid.shape[1] % chunks == 0 else 1
+    grid = grid.reshape(batch * chunks, -1, *([1] * (dim - 1)), dim)
+    source = volume.expand(chunks, *volume.shape[1:]) if chunks > 1 else volume
+    values = F.grid_sample(source, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    values = values.reshape(batch, chunks, volume.shape[1], -1).transpose(1, 2)
+    return values.reshape(batch, volume.shape[1], *sample_shape)
+
+
 def sample(volume: Tensor, points: Tensor) -> Tensor:
     """Values of a volume at arbitrary voxel coordinates, by (tri)linear interpolation, zero outside.
 
@@ -208,19 +224,7 @@ def sample(volume: Tensor, points: Tensor) -> Tensor:
     Returns:
         ``(B, C, *S)`` values.
     """
-    sizes = tuple(volume.shape[2:])
-    dim = len(sizes)
-    batch, sample_shape = points.shape[0], points.shape[1:-1]
-    grid = voxel_to_normalized(points, sizes).reshape(batch, -1, dim)
-    # PyTorch's CPU grid_sample parallelises over the batch only: for a single volume, split its points into one chunk
-    # per thread (measured 1.6x faster on two cores at 128^3) and sample them against a stride-0 view of the volume.
-    chunks = torch.get_num_threads() if volume.device.type == "cpu" and dim == 3 and batch == 1 else 1
-    chunks = chunks if grid.shape[1] % chunks == 0 else 1
-    grid = grid.reshape(batch * chunks, -1, *([1] * (dim - 1)), dim)
-    source = volume.expand(chunks, *volume.shape[1:]) if chunks > 1 else volume
-    values = F.grid_sample(source, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-    values = values.reshape(batch, chunks, volume.shape[1], -1).transpose(1, 2)
-    return values.reshape(batch, volume.shape[1], *sample_shape)
+    return _grid_sample(volume, voxel_to_normalized(points, tuple(volume.shape[2:])))
 
 
 def affine_points(sizes: tuple[int, ...], matrix: Tensor, translation: Tensor | None = None) -> Tensor:
@@ -251,15 +255,25 @@ def warp(volume: Tensor, matrix: Tensor, translation: Tensor | None = None) -> T
 
     Args:
         volume: ``(B, C, D, H, W)`` (or ``(B, C, H, W)`` for 2-D).
-        matrix: ``(B, d, d)`` ``moving_from_fixed`` linear part, acting on ``(x, y[, z])``.
-        translation: ``(B, d)`` voxels, or ``None`` for zero.
+        matrix: ``(B, *K, d, d)`` ``moving_from_fixed`` linear part, acting on ``(x, y[, z])``; ``K`` optional
+            extra axes (one resampled volume per entry, e.g. per candidate).
+        translation: ``(B, *K, d)`` voxels, or ``None`` for zero.
 
     Returns:
-        Volume of the same shape; trilinear (bilinear) interpolation, zero outside the input grid.
+        ``(B, C, *K, *S)``, ``S`` the spatial shape of ``volume``; trilinear (bilinear) interpolation, zero outside
+        the input grid.
 
     Convention:
         Pull resampling about the grid centre, as in the module docstring.
     """
-    points = affine_points(tuple(volume.shape[2:]), matrix.to(volume.dtype),
-                           None if translation is None else translation.to(volume.dtype))
-    return sample(volume, points)
+    sizes = tuple(volume.shape[2:])
+    matrix = matrix.to(volume.dtype)
+    translation = matrix.new_zeros(matrix.shape[:-1]) if translation is None else translation.to(volume.dtype)
+    # Fold grid_sample's normalisation into the map (per axis, with Python scalars): the grid comes out normalised in
+    # one pass instead of three over every voxel.
+    scale = [2.0 / (n - 1) for n in sizes[::-1]]
+    centre = [grid_centre(n) for n in sizes[::-1]]
+    normalised_matrix = torch.stack([matrix[..., i, :] * scale[i] for i in range(len(sizes))], -2)
+    normalised_translation = torch.stack([(translation[..., i] + centre[i]) * scale[i] - 1.0
+                                          for i in range(len(sizes))], -1)
+    return _grid_sample(volume, affine_points(sizes, normalised_matrix, normalised_translation))

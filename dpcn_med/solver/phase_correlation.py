@@ -22,9 +22,10 @@ def cross_power_spectrum(fixed: Tensor, moving: Tensor, dim: int, *, whiten: boo
     """One-sided cross-power spectrum ``RFFT(moving) * conj(RFFT(fixed))`` over the last ``dim`` axes.
 
     Args:
-        fixed: ``(batch, *S)`` real signals.
-        moving: ``(batch, *S)`` real signals, same shape, device and dtype.
-        dim: number of trailing axes to transform.
+        fixed: ``(..., *S)`` real signals.
+        moving: ``(..., *S)`` real signals, broadcastable against ``fixed`` (e.g. one fixed signal for K moving
+            ones), same device and dtype.
+        dim: number of trailing axes ``S`` to transform.
         whiten: divide by the magnitudes (phase correlation) rather than keep them (cross-correlation).
 
     Returns:
@@ -36,8 +37,7 @@ def cross_power_spectrum(fixed: Tensor, moving: Tensor, dim: int, *, whiten: boo
     if not whiten:
         return spectrum
     magnitude = spectrum.abs()
-    floor = WHITENING_FLOOR * magnitude.flatten(1).mean(-1).reshape(-1, *([1] * dim)) + torch.finfo(
-        magnitude.dtype).tiny
+    floor = WHITENING_FLOOR * magnitude.mean(axes, keepdim=True) + torch.finfo(magnitude.dtype).tiny
     return spectrum / (magnitude + floor)
 
 

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from dpcn_med.geometry import affine_points, half_turns, sample, warp
+from dpcn_med.geometry import half_turns, warp
 from dpcn_med.solver.config import SolverConfig, StageTemperatures
 from dpcn_med.solver.harmonics import even_degrees, isht, sht
 from dpcn_med.solver.phase_correlation import phase_correlation
@@ -106,12 +106,10 @@ def _candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, 
     """
     coarse_fixed = _downsample(fixed, size)
     coarse_moving = _downsample(moving, size)
-    batch, count = linear.shape[:2]
-    sizes = tuple(coarse_moving.shape[-3:])
-    warped = sample(coarse_moving[:, None], affine_points(sizes, linear))[:, 0]  # (batch, K, n, n, n)
-    fixed_batch = apodize(coarse_fixed, 3, taper)[:, None].expand(batch, count, *sizes).flatten(0, 1)
-    surface, _ = phase_correlation(fixed_batch, apodize(warped.flatten(0, 1), 3, taper), 3)
-    return surface.flatten(1).max(-1).values.reshape(batch, count)
+    warped = warp(coarse_moving[:, None], linear)[:, 0]  # (batch, K, n, n, n)
+    # The fixed volume's spectrum broadcasts over the K candidates: one FFT, not K.
+    surface, _ = phase_correlation(apodize(coarse_fixed, 3, taper)[:, None], apodize(warped, 3, taper), 3)
+    return surface.flatten(2).amax(-1)
 
 
 def _choose_candidate(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score: Tensor, keep: Tensor,
