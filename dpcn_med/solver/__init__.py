@@ -10,7 +10,7 @@ module                 step
 ``scale``              4. log-radius correlation (scale)
 ``translation``        5. phase correlation (translation)
 ``phase_correlation``  the N-D phase correlation, soft arg-max and sub-grid peak they share
-``log_polar``          2-D: rotation and scale in one log-polar phase correlation
+``log_polar``          2-D: rotation and scale in one log-polar correlation
 ``losses``             7. the training losses
 =====================  =================================================================
 """

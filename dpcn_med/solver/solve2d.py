@@ -58,7 +58,7 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
         InputError: malformed grids or an unknown mode.
 
     Notes:
-        Rotation and scale come from one phase correlation of the log-polar magnitude spectra, which is
+        Rotation and scale come from one correlation of the log-polar magnitude spectra, which is
         point-symmetric: the angle is known modulo 180 degrees. Both candidates are compensated and
         phase-correlated for translation; the higher peak wins. Later passes (``iterations``) warp the moving image
         by the estimate and measure the small residual, where interpolation errors are smallest.
@@ -71,8 +71,8 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
     fixed_image = fixed[:, 0]
     fixed_magnitude = magnitude_spectrum(fixed_image, 2, config.taper)
 
-    def translate(linear: Tensor, offset: Tensor) -> TranslationEstimate:
-        return phase_translation(fixed_image, warp(moving, linear, offset)[:, 0], temperatures.translation, dim=2,
+    def translate(linear: Tensor) -> TranslationEstimate:
+        return phase_translation(fixed_image, warp(moving, linear)[:, 0], temperatures.translation, dim=2,
                                  taper=config.taper, refine=config.refine, upsample=config.upsample)
 
     angle = fixed.new_zeros(batch)
@@ -80,8 +80,8 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
     translation = fixed.new_zeros(batch, 2)
     first = None
     for iteration in range(max(config.iterations, 1)):
-        linear = scale[:, None, None] * rotation_2d(angle)
-        current = warp(moving, linear, translation)[:, 0]  # identity on the first pass
+        current = moving[:, 0] if iteration == 0 else warp(moving, scale[:, None, None] * rotation_2d(angle),
+                                                          translation)[:, 0]
         estimate = log_polar_rotation_scale(fixed_magnitude, magnitude_spectrum(current, 2, config.taper),
                                             config.log_polar_band, config.log_polar_radii,
                                             config.log_polar_angles, temperatures.rotation, refine=config.refine,
@@ -93,7 +93,7 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
             heights = []
             for k in range(2):
                 trial = step_scale[:, None, None] * rotation_2d(twins[:, k])
-                heights.append(translate(trial, None).height)
+                heights.append(translate(trial).height)
             step_angle = twins.gather(1, torch.stack(heights, 1).argmax(1, keepdim=True))[:, 0]
         else:
             step_angle = estimate.angle
@@ -101,7 +101,7 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
         angle = angle + step_angle
         scale = scale * step_scale
         linear = scale[:, None, None] * rotation_2d(angle)
-        shift = translate(linear, None)
+        shift = translate(linear)
         translation = (linear @ shift.shift[..., None])[..., 0]
     angle = torch.remainder(angle + math.pi, 2 * math.pi) - math.pi
     return Solve2dResult(rotation=rotation_2d(angle), angle=angle, scale=scale, translation=translation,
