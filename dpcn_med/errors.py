@@ -3,3 +3,7 @@
 
 class InputError(ValueError):
     """An input (grid, image, file, option) is unusable; the message names it, its value and the fix."""
+
+
+class InputNotFoundError(InputError, FileNotFoundError):
+    """An input path does not exist; a ``FileNotFoundError`` too, so either ``except`` clause catches it."""

@@ -1,0 +1,632 @@
+"""Every file the project reads or writes: images, masks, transforms, meshes, JSON and text.
+
+Nothing else in ``dpcn_med`` opens a file. Readers check what they read and raise :class:`InputError`
+(:class:`InputNotFoundError` for a missing path) with one line, ``"{path}: {problem}; {fix}"``, which the CLI prints
+as it is. Writers go through :func:`atomic_output`: a file appears under its final name complete or not at all.
+
+Convention:
+    Physical space is ITK's LPS in millimetres (:mod:`dpcn_med.geometry` owns the frames). Images keep the origin,
+    spacing and direction stored in the file; NIfTI stores them as float32, so they round-trip to about 1e-7 there
+    and exactly in NRRD and MetaImage.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gzip
+import json
+import math
+import os
+import re
+import secrets
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import SimpleITK as sitk
+
+from dpcn_med.errors import InputError, InputNotFoundError
+
+if TYPE_CHECKING:
+    import pyvista
+
+IMAGE_WRITE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".mha")
+"""Image formats :func:`write_image` writes: one file each, so the atomic rename moves all of it."""
+TRANSFORM_SUFFIXES = (".tfm", ".txt", ".h5", ".hdf5")
+"""ITK transform files (text or HDF5), readable by SimpleITK, ITK and Slicer."""
+MESH_SUFFIXES = (".stl", ".vtk", ".vtp", ".ply", ".obj")
+"""Surface meshes and point clouds :func:`read_mesh` reads."""
+
+SPACING_RANGE_MM = (0.01, 100.0)
+"""Voxel sizes outside this range are unit mistakes (metres, micrometres) or broken headers, not anatomy."""
+WORKING_COPIES = 4
+"""float32 copies of a volume alive at once while it is normalised and resampled (estimate for the memory check)."""
+GRID_TOLERANCE = 1e-4
+"""Relative and absolute tolerance for a mask's origin, spacing and direction against its image's."""
+
+_CHUNK = 1 << 20
+_INPUT_FORMATS = "NIfTI (.nii, .nii.gz), NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd) or a folder of DICOM slices"
+# Bytes per element of MetaImage's element types (MetaIO's MET_LONG is 32-bit).
+_META_ELEMENT_BYTES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4, "MET_UINT": 4,
+                       "MET_LONG": 4, "MET_ULONG": 4, "MET_LONG_LONG": 8, "MET_ULONG_LONG": 8, "MET_FLOAT": 4,
+                       "MET_DOUBLE": 8}
+
+
+# ---------------------------------------------------------------------------------------------------------- images
+def read_image(path: str | os.PathLike, *, max_bytes: int | None = None) -> sitk.Image:
+    """A checked 3-D scalar volume from an image file or a DICOM series folder.
+
+    Args:
+        path: .nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd, or a folder holding one DICOM series; ``FOLDER@SERIES_UID``
+            picks one series from a folder holding several.
+        max_bytes: working memory the volume may take (see :data:`WORKING_COPIES`); default: the memory available
+            now.
+
+    Returns:
+        The volume with the origin, spacing and direction of the file, pixel type as stored.
+
+    Raises:
+        InputNotFoundError: the path does not exist.
+        InputError: the file is unreadable, truncated, not a 3-D scalar volume, has an absurd spacing, would not fit
+            in memory, holds NaN or infinite voxels, or is constant.
+    """
+    name = os.fspath(path)
+    image = _read_volume(name, max_bytes)
+    array = sitk.GetArrayViewFromImage(image)  # a view: ``image`` must stay referenced while it is used
+    if array.dtype.kind == "f":
+        finite = np.isfinite(array)
+        if not finite.all():
+            nan = int(np.isnan(array).sum())
+            infinite = array.size - int(finite.sum()) - nan
+            raise InputError(f"{name}: holds {nan} NaN and {infinite} infinite voxels out of {array.size}; replace "
+                             "them (e.g. numpy.nan_to_num) and save the volume again")
+    low, high = array.min(), array.max()
+    if low == high:
+        raise InputError(f"{name}: all voxels equal {low.item():g}; the volume is blank: check that the right file "
+                         "was exported")
+    return image
+
+
+def read_mask(path: str | os.PathLike, image: sitk.Image, *, role: str = "mask",
+              max_bytes: int | None = None) -> sitk.Image:
+    """A binary mask on the voxel grid of ``image``.
+
+    Args:
+        path: mask file, any format :func:`read_image` reads.
+        image: the volume the mask belongs to.
+        role: what the mask is, for messages ("fixed mask").
+        max_bytes: as in :func:`read_image`.
+
+    Returns:
+        sitkUInt8 image, 1 inside and 0 outside, with exactly the origin, spacing and direction of ``image`` (the
+        file's may differ within :data:`GRID_TOLERANCE`).
+
+    Raises:
+        InputError: the file is unusable as in :func:`read_image`, or the mask is on another grid, empty, or holds
+            more than two values.
+    """
+    name = os.fspath(path)
+    mask = _read_volume(name, max_bytes)
+    _check_same_grid(name, role, mask, image)
+    array = sitk.GetArrayViewFromImage(mask)  # ``mask`` stays referenced while the view is used
+    values = np.unique(array)
+    if values.size == 1 and values[0] == 0:
+        raise InputError(f"{name}: {role} is empty (every voxel is 0); give a mask with foreground or leave it out")
+    if values.size == 1:
+        raise InputError(f"{name}: {role} has no background (every voxel is {values[0]:g}); expected 0 outside and "
+                         "one value inside")
+    if values.size > 2 or values[0] != 0:
+        shown = ", ".join(f"{v:g}" for v in values[:6]) + (f" and {values.size - 6} more" if values.size > 6 else "")
+        raise InputError(f"{name}: {role} is not binary: found {values.size} distinct values ({shown}); expected 0 "
+                         "outside and one value inside (for a label map, keep one label: sitk.BinaryThreshold)")
+    binary = sitk.GetImageFromArray((array != 0).astype(np.uint8))
+    binary.CopyInformation(image)  # snap the tolerated differences so later filters see one grid
+    return binary
+
+
+def image_summary(image: sitk.Image) -> dict[str, Any]:
+    """Geometry and intensity range of a 3-D volume, for ``dpcn-med info``.
+
+    Returns:
+        ``size``, ``spacing`` (mm), ``origin`` (mm, LPS) as tuples, ``direction`` as a 3x3 nested list (columns are
+        the voxel axes), ``orientation`` (three letters, e.g. "LPS"), ``pixel_type``, ``extent_mm`` (size x spacing,
+        voxel edge to voxel edge), ``voxels``, and ``intensity_min``, ``intensity_max``, ``intensity_p1``,
+        ``intensity_p99`` as floats.
+
+    Raises:
+        InputError: ``image`` is not a 3-D scalar volume.
+    """
+    if image.GetDimension() != 3 or image.GetNumberOfComponentsPerPixel() != 1:
+        raise InputError(f"image is {image.GetDimension()}-D with {image.GetNumberOfComponentsPerPixel()} "
+                         "component(s) per voxel; a summary needs a 3-D scalar volume")
+    array = sitk.GetArrayViewFromImage(image)
+    p1, p99 = np.percentile(array, [1.0, 99.0])
+    return {
+        "size": image.GetSize(),
+        "spacing": image.GetSpacing(),
+        "origin": image.GetOrigin(),
+        "direction": np.reshape(image.GetDirection(), (3, 3)).tolist(),
+        "orientation": sitk.DICOMOrientImageFilter.GetOrientationFromDirectionCosines(image.GetDirection()),
+        "pixel_type": image.GetPixelIDTypeAsString(),
+        "extent_mm": tuple(n * s for n, s in zip(image.GetSize(), image.GetSpacing())),
+        "voxels": math.prod(image.GetSize()),
+        "intensity_min": float(array.min()),
+        "intensity_max": float(array.max()),
+        "intensity_p1": float(p1),
+        "intensity_p99": float(p99),
+    }
+
+
+def _read_volume(name: str, max_bytes: int | None) -> sitk.Image:
+    """The volume at ``name`` after every check that does not look at voxel values."""
+    folder, uid = _split_series(name)
+    if folder is not None:
+        return _read_dicom(name, folder, uid, max_bytes)
+    if not os.path.exists(name):
+        raise InputNotFoundError(f"{name}: not found (no such file or folder); check the path")
+    if os.path.isdir(name):
+        return _read_dicom(name, Path(name), None, max_bytes)
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(name)
+    try:
+        reader.ReadImageInformation()
+    except RuntimeError as error:
+        raise InputError(f"{name}: not a readable image ({_sitk_reason(error)}); expected {_INPUT_FORMATS}") from None
+    single_dicom = sitk.ImageFileReader.GetImageIOFromFileName(name) == "GDCMImageIO"
+    _check_shape(name, reader.GetDimension(), reader.GetSize(), reader.GetNumberOfComponents(), single_dicom)
+    _check_spacing(name, reader.GetSpacing())
+    _check_memory(name, reader.GetSize(), max_bytes)
+    _check_complete(Path(name))
+    try:
+        return reader.Execute()
+    except RuntimeError as error:
+        raise InputError(f"{name}: the voxels cannot be read ({_sitk_reason(error)}); the file is probably truncated "
+                         "or corrupt: copy or export it again") from None
+
+
+def _split_series(name: str) -> tuple[Path | None, str | None]:
+    """``(folder, uid)`` for an existing ``FOLDER@UID``, else ``(None, None)``."""
+    if "@" not in name or os.path.exists(name):
+        return None, None
+    folder, _, uid = name.rpartition("@")
+    return (Path(folder), uid) if os.path.isdir(folder) else (None, None)
+
+
+def _read_dicom(name: str, folder: Path, uid: str | None, max_bytes: int | None) -> sitk.Image:
+    series = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
+    if not series:
+        count = sum(1 for entry in folder.iterdir() if entry.is_file())
+        raise InputError(f"{name}: is a folder holding no DICOM series ({count} files); expected {_INPUT_FORMATS}")
+    files = {s: sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), s) for s in series}
+    if uid is None and len(series) > 1:
+        raise InputError(f"{name}: holds {len(series)} DICOM series: {_series_listing(files)}; choose one as "
+                         f"{folder}@UID")
+    if uid is None:
+        uid = series[0]
+    elif uid not in files:
+        raise InputError(f"{name}: {folder} holds no DICOM series with UID {uid}; it holds "
+                         f"{_series_listing(files)}; choose one as {folder}@UID")
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(files[uid])
+    try:
+        slice_size = _file_information(files[uid][0]).GetSize()
+        _check_memory(name, (*slice_size[:2], len(files[uid])), max_bytes)
+        image = reader.Execute()
+    except RuntimeError as error:
+        raise InputError(f"{name}: DICOM series {uid} cannot be read ({_sitk_reason(error)}); check that its "
+                         "files are complete") from None
+    _check_shape(name, image.GetDimension(), image.GetSize(), image.GetNumberOfComponentsPerPixel(), False)
+    _check_spacing(name, image.GetSpacing())
+    return image
+
+
+def _file_information(filename: str) -> sitk.ImageFileReader:
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(filename)
+    reader.ReadImageInformation()
+    return reader
+
+
+def _series_listing(files: dict[str, tuple[str, ...]]) -> str:
+    """``UID (N files, 'description')`` for each series, joined by "; "."""
+    entries = []
+    for uid, names in files.items():
+        try:
+            reader = _file_information(names[0])
+            description = reader.GetMetaData("0008|103e").strip() if reader.HasMetaDataKey("0008|103e") else ""
+        except RuntimeError:  # the description only helps to choose; a series without a readable one still lists
+            description = ""
+        entries.append(f"{uid} ({len(names)} files" + (f", {description!r})" if description else ")"))
+    return "; ".join(entries)
+
+
+def _check_shape(name: str, dimension: int, size: tuple[int, ...], components: int, single_dicom: bool) -> None:
+    if dimension == 4:
+        raise InputError(f"{name}: is 4-D (size {size}); extract one volume first (e.g. image[:, :, :, 0] in "
+                         "SimpleITK, or fslroi)")
+    if dimension == 2:
+        raise InputError(f"{name}: is 2-D (size {size}); expected a 3-D volume (2-D slices go to "
+                         "dpcn_med.solver.solve2d)")
+    if dimension != 3:
+        raise InputError(f"{name}: is {dimension}-D (size {size}); expected a 3-D volume")
+    if 0 in size:
+        raise InputError(f"{name}: holds no voxels (size {size}); export the volume again")
+    if 1 in size:
+        hint = ("a single DICOM file is one slice: pass the folder holding the whole series" if single_dicom
+                else "expected a 3-D volume (2-D slices go to dpcn_med.solver.solve2d)")
+        raise InputError(f"{name}: is effectively 2-D (size {size}, one voxel thick along axis {size.index(1)}); "
+                         f"{hint}")
+    if components != 1:
+        raise InputError(f"{name}: has {components} components per voxel (a vector or colour image); expected a "
+                         "scalar volume: keep one component first (sitk.VectorIndexSelectionCast)")
+
+
+def _check_spacing(name: str, spacing: tuple[float, ...]) -> None:
+    low, high = SPACING_RANGE_MM
+    if not all(math.isfinite(s) for s in spacing):
+        problem = "is not finite"
+    elif min(spacing) <= 0:
+        problem = "must be positive"
+    elif min(spacing) < low:
+        problem = f"is below {low} mm (micrometres, or a broken header?)"
+    elif max(spacing) > high:
+        problem = f"is above {high} mm (metres, or a broken header?)"
+    else:
+        return
+    raise InputError(f"{name}: spacing {spacing} mm {problem}; set the voxel size in millimetres "
+                     "(image.SetSpacing) and save the volume again")
+
+
+def _check_memory(name: str, size: tuple[int, ...], max_bytes: int | None) -> None:
+    """Refuse a volume whose float32 working copies would not fit, judged from its header alone."""
+    voxels = math.prod(size)
+    needed = voxels * np.dtype(np.float32).itemsize * WORKING_COPIES
+    limit = _available_memory() if max_bytes is None else max_bytes
+    if limit is not None and needed > limit:
+        raise InputError(f"{name}: size {size} ({voxels:,} voxels) needs about {_bytes_text(needed)} of working "
+                         f"memory ({WORKING_COPIES} float32 copies), more than the {_bytes_text(limit)} available; "
+                         "resample it to a coarser spacing first (e.g. sitk.Resample onto 1 mm voxels: dpcn-med works "
+                         "at about 1-2 mm anyway)")
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory available now (Linux MemAvailable, else free pages), or None where neither is known."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _bytes_text(count: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if count < 1024:
+            return f"{count:.0f} {unit}" if unit == "B" else f"{count:.1f} {unit}"
+        count /= 1024
+    return f"{count:.1f} PiB"
+
+
+# ------------------------------------------------------------------------------------------------------ truncation
+def _check_complete(path: Path) -> None:
+    """Raise if the file holds fewer voxel bytes than its header promises.
+
+    SimpleITK 2.5 reads a truncated .nii or .nii.gz without an error and fills the missing voxels with zeros, and
+    reports a truncated MetaImage as "No such file or directory"; NRRD's reader says what is missing itself.
+    """
+    lower = path.name.lower()
+    if lower.endswith(".nii.gz"):
+        sibling = path.with_name(path.name[:-3])
+        if sibling.exists():
+            # Measured: ITK's NIfTI reader given X.nii.gz opens X.nii when both exist.
+            raise InputError(f"{path}: {sibling.name} lies beside it and SimpleITK would read that file instead; "
+                             "rename or move one of the two")
+        _check_nifti(path, compressed=True)
+    elif lower.endswith(".nii"):
+        _check_nifti(path, compressed=False)
+    elif lower.endswith((".mha", ".mhd")):
+        _check_metaimage(path)
+
+
+def _check_nifti(path: Path, *, compressed: bool) -> None:
+    """Raise if a NIfTI file is truncated or holds non-finite voxels.
+
+    Both go unnoticed otherwise: SimpleITK 2.5 zero-fills the missing voxels and reads NaN and infinite voxels as 0
+    (measured).
+    """
+    import nibabel  # imported here: only NIfTI files need it
+
+    try:
+        proxy = nibabel.load(path).dataobj  # reads the header only
+    except (nibabel.filebasedimages.ImageFileError, OSError, ValueError, EOFError):
+        return  # nibabel refuses a few headers ITK accepts; SimpleITK's own read then has the last word
+    # The proxy's offset, not the header's vox_offset, which nibabel zeroes on loading.
+    offset, dtype, voxels = int(proxy.offset), proxy.dtype, math.prod(proxy.shape)
+    needed = offset + voxels * dtype.itemsize
+    nan = infinite = 0
+    if not compressed and dtype.kind != "f":
+        found = path.stat().st_size
+    else:
+        found, nan, infinite = _scan_nifti(path, compressed, offset, dtype if dtype.kind == "f" else None, needed)
+    if found < needed:
+        raise _truncated(path, f"it holds {found:,} bytes, the header needs {needed:,}")
+    if nan or infinite:
+        raise InputError(f"{path}: holds {nan} NaN and {infinite} infinite voxels out of {voxels}; replace them "
+                         "(e.g. numpy.nan_to_num) and save the volume again (SimpleITK would read them as 0)")
+
+
+def _scan_nifti(path: Path, compressed: bool, offset: int, dtype: np.dtype | None, needed: int) -> tuple[int, int, int]:
+    """Stream through a NIfTI file: ``(bytes found, NaN voxels, infinite voxels)``; counts only if ``dtype`` is set.
+
+    A chunk at a time, so a volume is never held twice in memory.
+    """
+    found = nan = infinite = 0
+    pending = b""
+    try:
+        with (gzip.open(path, "rb") if compressed else open(path, "rb")) as stream:
+            while chunk := stream.read(_CHUNK):
+                voxel_bytes = chunk[max(offset - found, 0):max(needed - found, 0)]
+                found += len(chunk)
+                if dtype is None:
+                    continue
+                data = pending + voxel_bytes
+                whole = len(data) - len(data) % dtype.itemsize
+                values = np.frombuffer(data, dtype, count=whole // dtype.itemsize)
+                nan += int(np.isnan(values).sum())
+                infinite += int(np.isinf(values).sum())
+                pending = data[whole:]
+    except EOFError:
+        raise _truncated(path, f"its compressed stream ends after {found:,} of the {needed:,} bytes the header "
+                               "needs") from None
+    except (zlib.error, gzip.BadGzipFile) as error:
+        raise InputError(f"{path}: the compressed data is corrupt ({error}); copy or export it again") from None
+    return found, nan, infinite
+
+
+def _check_metaimage(path: Path) -> None:
+    fields, data_offset = _metaimage_header(path)
+    data_file = fields.get("ElementDataFile", "")
+    element_bytes = _META_ELEMENT_BYTES.get(fields.get("ElementType", ""))
+    # ASCII data, slices listed in several files, and unknown types have no byte count to check.
+    if (fields.get("BinaryData", "True").lower() != "true" or element_bytes is None or not data_file
+            or data_file.upper().startswith("LIST") or "%" in data_file):
+        return
+    if data_file.upper() == "LOCAL":
+        source = path
+    else:
+        source = path.parent / data_file
+        data_offset = int(fields.get("HeaderSize", "0"))
+        if not source.exists():
+            raise InputError(f"{path}: its voxel file {source} is missing; keep {data_file} beside the header")
+        if data_offset < 0:  # HeaderSize = -1: the voxels are the file's last bytes, so its size proves nothing
+            return
+    needed = math.prod(int(n) for n in fields.get("DimSize", "").split()) * element_bytes
+    needed *= int(fields.get("ElementNumberOfChannels", "1"))
+    if fields.get("CompressedData", "False").lower() == "true":
+        found, complete = _inflated_length(source, data_offset)
+        if not complete:
+            raise _truncated(path, f"its compressed voxel stream ends after {found:,} of {needed:,} bytes")
+    else:
+        found = source.stat().st_size - data_offset
+    if found < needed:
+        raise _truncated(path, f"it holds {max(found, 0):,} voxel bytes, the header needs {needed:,}")
+
+
+def _metaimage_header(path: Path) -> tuple[dict[str, str], int]:
+    """The ``Key = Value`` fields of a MetaImage header and the byte offset just after it."""
+    fields: dict[str, str] = {}
+    with open(path, "rb") as stream:
+        while line := stream.readline(4096):
+            key, _, value = line.decode("latin-1").partition("=")
+            fields[key.strip()] = value.strip()
+            if key.strip() == "ElementDataFile":  # always the last field; the voxels of a .mha follow it
+                break
+        return fields, stream.tell()
+
+
+def _inflated_length(path: Path, offset: int) -> tuple[int, bool]:
+    """Bytes a zlib stream starting at ``offset`` inflates to, and whether the stream ends properly."""
+    inflater = zlib.decompressobj()
+    found = 0
+    with open(path, "rb") as stream:
+        stream.seek(offset)
+        while (data := stream.read(_CHUNK)) and not inflater.eof:
+            # Bounded output per call (a run of zeros inflates a thousandfold); a full output may leave more pending.
+            while output := inflater.decompress(data, _CHUNK):
+                found += len(output)
+                data = inflater.unconsumed_tail
+    return found, inflater.eof
+
+
+def _truncated(path: Path, detail: str) -> InputError:
+    return InputError(f"{path}: is truncated ({detail}); the copy or download was cut short: copy it again")
+
+
+def _sitk_reason(error: RuntimeError) -> str:
+    """The informative line of a SimpleITK exception, without source locations and object addresses."""
+    lines = []
+    for line in str(error).splitlines():
+        line = re.sub(r"^(sitk::ERROR:|ITK ERROR: [^:]*\(0x[0-9a-fA-F]+\):)", "", line.strip()).strip()
+        if line and not line.startswith("Exception thrown in SimpleITK"):
+            lines.append(line)
+    # Teem (NRRD) nests its messages; the innermost, last one says what went wrong.
+    teem = [detail for line in lines if line.startswith("[nrrd]")
+            if (detail := line.split(":", 1)[-1].strip()) and detail != "trouble"]
+    if teem:
+        return teem[-1]
+    return lines[0] if lines else type(error).__name__
+
+
+# ----------------------------------------------------------------------------------------------------- masks, grids
+def _check_same_grid(name: str, role: str, mask: sitk.Image, image: sitk.Image) -> None:
+    same_size = mask.GetSize() == image.GetSize()
+    differing = [label for label, ours, theirs in (("origin", mask.GetOrigin(), image.GetOrigin()),
+                                                   ("spacing", mask.GetSpacing(), image.GetSpacing()),
+                                                   ("direction", mask.GetDirection(), image.GetDirection()))
+                 if not np.allclose(ours, theirs, rtol=GRID_TOLERANCE, atol=GRID_TOLERANCE)]
+    if same_size and not differing:
+        return
+    shown = [f"size {mask.GetSize()} vs {image.GetSize()}", f"spacing {mask.GetSpacing()} vs {image.GetSpacing()}"]
+    if "origin" in differing:
+        shown.append(f"origin {mask.GetOrigin()} vs {image.GetOrigin()}")
+    if "direction" in differing:
+        shown.append(f"direction {mask.GetDirection()} vs {image.GetDirection()}")
+    raise InputError(f"{name}: {role} is not on its image's voxel grid ({', '.join(shown)}, {role} vs image); "
+                     "resample it onto the image with nearest-neighbour interpolation: sitk.Resample(mask, image, "
+                     "sitk.Transform(), sitk.sitkNearestNeighbor)")
+
+
+# ------------------------------------------------------------------------------------------------------ transforms
+def read_transform(path: str | os.PathLike) -> sitk.Transform:
+    """A 3-D ITK transform (.tfm, .txt, .h5), as its concrete SimpleITK class (e.g. ``Similarity3DTransform``).
+
+    Raises:
+        InputNotFoundError: the path does not exist.
+        InputError: the file is not a readable transform, not 3-D, or holds non-finite parameters.
+    """
+    name = os.fspath(path)
+    if not os.path.exists(name):
+        raise InputNotFoundError(f"{name}: not found (no such file); check the path")
+    if os.path.isdir(name):
+        raise InputError(f"{name}: is a folder; expected a transform file ({', '.join(TRANSFORM_SUFFIXES)})")
+    try:
+        transform = sitk.ReadTransform(name)
+    except RuntimeError as error:
+        raise InputError(f"{name}: not a readable transform ({_sitk_reason(error)}); expected an ITK transform file "
+                         f"({', '.join(TRANSFORM_SUFFIXES)}) as SimpleITK, ITK or Slicer write it") from None
+    if transform.GetDimension() != 3:
+        raise InputError(f"{name}: is a {transform.GetDimension()}-D transform; expected a 3-D one")
+    if not np.isfinite(transform.GetParameters()).all() or not np.isfinite(transform.GetFixedParameters()).all():
+        raise InputError(f"{name}: holds NaN or infinite parameters; compute and write the transform again")
+    return transform.Downcast()
+
+
+# ---------------------------------------------------------------------------------------------------------- writers
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary path beside ``path`` that becomes ``path`` when the block succeeds.
+
+    The temporary name keeps the full suffix (``x.nii.gz`` -> ``.x.tmp1a2b3c4d.nii.gz``), so writers that choose the
+    format by extension work on it. On success it is renamed onto ``path`` (``os.replace``, atomic within one
+    folder); on any exception, Ctrl-C included, it is removed and ``path`` is left as it was.
+
+    Raises:
+        InputError: the folder of ``path`` does not exist (creating it is the caller's choice).
+
+    Example:
+        >>> with atomic_output("out/report.png") as temporary:  # doctest: +SKIP
+        ...     figure.savefig(temporary)
+    """
+    target = Path(path)
+    if not target.parent.is_dir():
+        raise InputError(f"{target}: folder {target.parent} does not exist; create it first")
+    suffix = _full_suffix(target.name)
+    stem = target.name[:len(target.name) - len(suffix)]
+    temporary = target.with_name(f".{stem}.tmp{secrets.token_hex(4)}{suffix}")
+    try:
+        yield temporary
+        os.replace(temporary, target)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+def _full_suffix(name: str) -> str:
+    """``.nii.gz`` for ``x.nii.gz``, ``.tfm`` for ``a.b.tfm``: the suffix a writer picks its format by."""
+    suffixes = Path(name).suffixes
+    if len(suffixes) >= 2 and suffixes[-1].lower() == ".gz":
+        return "".join(suffixes[-2:])
+    return suffixes[-1] if suffixes else ""
+
+
+def write_image(image: sitk.Image, path: str | os.PathLike, *, compress: bool = True) -> None:
+    """Write ``image`` atomically as .nii.gz, .nii, .nrrd or .mha (geometry as in :mod:`dpcn_med.io`'s Convention).
+
+    Args:
+        image: any SimpleITK image.
+        path: destination; its folder must exist.
+        compress: compress the voxels (gzip or zlib) where the format allows.
+
+    Raises:
+        InputError: another suffix, or the folder does not exist.
+    """
+    target = Path(path)
+    if not target.name.lower().endswith(IMAGE_WRITE_SUFFIXES):
+        raise InputError(f"{target}: cannot write an image with this suffix; use {', '.join(IMAGE_WRITE_SUFFIXES)} "
+                         "(.mhd and .nhdr keep the voxels in a second file, which one rename cannot move)")
+    with atomic_output(target) as temporary:
+        sitk.WriteImage(image, str(temporary), useCompression=compress)
+
+
+def write_transform(transform: sitk.Transform, path: str | os.PathLike) -> None:
+    """Write ``transform`` atomically as .tfm or .txt (text) or .h5 / .hdf5 (HDF5); Slicer and ITK read all."""
+    target = Path(path)
+    if not target.name.lower().endswith(TRANSFORM_SUFFIXES):
+        raise InputError(f"{target}: cannot write a transform with this suffix; use {', '.join(TRANSFORM_SUFFIXES)}")
+    with atomic_output(target) as temporary:
+        sitk.WriteTransform(transform, str(temporary))
+
+
+def write_json(data: Any, path: str | os.PathLike) -> None:
+    """Write ``data`` as indented JSON (numpy scalars and arrays, and paths, converted), atomically."""
+    write_text(json.dumps(data, indent=2, default=_json_value) + "\n", path)
+
+
+def _json_value(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def write_text(text: str, path: str | os.PathLike) -> None:
+    """Write ``text`` as UTF-8, newlines untranslated, atomically."""
+    with atomic_output(path) as temporary, open(temporary, "w", encoding="utf-8", newline="") as stream:
+        stream.write(text)
+
+
+# ----------------------------------------------------------------------------------------------------------- meshes
+def is_mesh_path(path: str | os.PathLike) -> bool:
+    """Whether ``path`` names a surface mesh or point cloud (by suffix, see :data:`MESH_SUFFIXES`)."""
+    return os.fspath(path).lower().endswith(MESH_SUFFIXES)
+
+
+def read_mesh(path: str | os.PathLike) -> pyvista.PolyData:
+    """A surface mesh or point cloud with at least one point, coordinates as stored (LPS mm for Slicer >= 4.11).
+
+    Args:
+        path: .stl, .vtk, .vtp, .ply or .obj. A volumetric .vtk mesh becomes its outer surface.
+
+    Raises:
+        InputNotFoundError: the path does not exist.
+        InputError: the file is unreadable, not a mesh, or holds no points.
+    """
+    name = os.fspath(path)
+    if not os.path.exists(name):
+        raise InputNotFoundError(f"{name}: not found (no such file); check the path")
+    if not is_mesh_path(name):
+        raise InputError(f"{name}: not a mesh file; expected one of {', '.join(MESH_SUFFIXES)}")
+    import pyvista as pv  # imported here: VTK takes about a second to load and most runs read no mesh
+
+    try:
+        mesh = pv.read(name)
+    except (RuntimeError, ValueError, OSError) as error:
+        raise InputError(f"{name}: not a readable mesh ({error}); export it again") from None
+    if isinstance(mesh, pv.UnstructuredGrid):
+        mesh = mesh.extract_surface(algorithm="dataset_surface")
+    if not isinstance(mesh, pv.PolyData):
+        raise InputError(f"{name}: holds {type(mesh).__name__} data, not a surface mesh or point cloud; save "
+                         "images as .nii.gz, .nrrd or .mha")
+    if mesh.n_points == 0:
+        raise InputError(f"{name}: holds no points (an empty or unreadable mesh); export it again")
+    return mesh

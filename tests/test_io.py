@@ -1,0 +1,567 @@
+"""Tests for dpcn_med.io: real files written into tmp_path, every bad input checked by its message."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from pathlib import Path
+
+import nibabel
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from dpcn_med import io
+from dpcn_med.errors import InputError, InputNotFoundError
+
+SIZE = (20, 24, 28)  # (x, y, z): every axis different, so a transposition cannot pass
+SPACING = (0.75, 1.25, 2.5)
+ORIGIN = (-12.3456789, 30.25, 7.1)
+# Origin, spacing and direction survive exactly in NRRD and MetaImage; NIfTI keeps them as float32.
+GEOMETRY_TOLERANCE = {".nii": 1e-6, ".nii.gz": 1e-6, ".nrrd": 1e-12, ".nhdr": 1e-12, ".mha": 0.0, ".mhd": 0.0}
+
+
+def oblique_direction() -> tuple[float, ...]:
+    return sitk.VersorTransform((0.3, -0.5, 0.8), 0.7).GetMatrix()
+
+
+def make_volume(seed: int = 0, pixel: type = np.float32) -> sitk.Image:
+    """A random asymmetric volume with non-trivial origin, spacing and direction."""
+    rng = np.random.default_rng(seed)
+    image = sitk.GetImageFromArray((rng.random(SIZE[::-1]) * 1000).astype(pixel))
+    image.SetSpacing(SPACING)
+    image.SetOrigin(ORIGIN)
+    image.SetDirection(oblique_direction())
+    return image
+
+
+def assert_same_geometry(a: sitk.Image, b: sitk.Image, tolerance: float = 0.0) -> None:
+    assert a.GetSize() == b.GetSize()
+    for get in ("GetOrigin", "GetSpacing", "GetDirection"):
+        np.testing.assert_allclose(getattr(a, get)(), getattr(b, get)(), rtol=0, atol=tolerance, err_msg=get)
+
+
+def cut(path: Path, fraction: float = 0.5) -> None:
+    """Keep only the first ``fraction`` of a file's bytes, as an interrupted copy does."""
+    content = path.read_bytes()
+    path.write_bytes(content[:int(len(content) * fraction)])
+
+
+def write_dicom_series(folder: Path, uid: str, description: str, slices: int, seed: int = 1) -> sitk.Image:
+    """Write an int16 series of axial slices into ``folder``; returns the volume it holds."""
+    rng = np.random.default_rng(seed)
+    volume = sitk.GetImageFromArray(rng.integers(-500, 1500, (slices, 24, 20)).astype(np.int16))
+    volume.SetSpacing((0.75, 0.5, 2.0))
+    volume.SetOrigin((-10.0, 5.5, 30.0))
+    direction = volume.GetDirection()
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    for k in range(slices):
+        image = volume[:, :, k]
+        tags = {"0008|0060": "CT", "0020|000d": "1.2.826.0.1.3680043.2.1125.9", "0020|000e": uid,
+                "0008|103e": description, "0008|0018": f"{uid}.{k + 1}", "0020|0013": str(k + 1),
+                "0020|0032": "\\".join(map(str, volume.TransformIndexToPhysicalPoint((0, 0, k)))),
+                "0020|0037": "\\".join(map(str, direction[0:3] + direction[3:6])), "0018|0050": "2.0"}
+        for tag, value in tags.items():
+            image.SetMetaData(tag, value)
+        writer.SetFileName(str(folder / f"{uid}-{k:03d}.dcm"))
+        writer.Execute(image)
+    return volume
+
+
+def edit_header(path: Path, old: bytes, new: bytes) -> None:
+    content = path.read_bytes()
+    assert old in content, content[:400]
+    path.write_bytes(content.replace(old, new, 1))
+
+
+@pytest.fixture
+def volume() -> sitk.Image:
+    return make_volume()
+
+
+class TestReadImage:
+    @pytest.mark.parametrize("suffix", list(GEOMETRY_TOLERANCE))
+    @pytest.mark.parametrize("compress", [False, True], ids=["raw", "compressed"])
+    def test_round_trip(self, volume, tmp_path, suffix, compress):
+        path = tmp_path / f"volume{suffix}"
+        sitk.WriteImage(volume, str(path), useCompression=compress)
+        image = io.read_image(path)
+        assert_same_geometry(image, volume, GEOMETRY_TOLERANCE[suffix])
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(image), sitk.GetArrayFromImage(volume))
+
+    def test_integer_volume_keeps_pixel_type(self, tmp_path):
+        path = tmp_path / "ct.nrrd"
+        sitk.WriteImage(make_volume(pixel=np.int16), str(path))
+        assert io.read_image(str(path)).GetPixelID() == sitk.sitkInt16
+
+    def test_missing_path(self, tmp_path):
+        with pytest.raises(InputNotFoundError, match=r"nope\.nii\.gz: not found") as caught:
+            io.read_image(tmp_path / "nope.nii.gz")
+        assert isinstance(caught.value, FileNotFoundError) and isinstance(caught.value, InputError)
+
+    def test_garbage_bytes(self, tmp_path):
+        path = tmp_path / "garbage.nii.gz"
+        path.write_bytes(os.urandom(3000))
+        with pytest.raises(InputError, match=r"garbage\.nii\.gz: not a readable image \(Unable to determine"):
+            io.read_image(path)
+
+    def test_unsupported_format(self, tmp_path):
+        path = tmp_path / "notes.xyz"
+        path.write_text("not an image\n")
+        with pytest.raises(InputError, match=r"notes\.xyz: not a readable image .*expected NIfTI"):
+            io.read_image(path)
+
+    @pytest.mark.parametrize(("name", "compress", "message"), [
+        ("v.nii.gz", True, r"is truncated \(its compressed stream ends after"),
+        ("v.nii", False, r"is truncated \(it holds 27,056 bytes, the header needs 54,112\)"),
+        ("v.mha", False, r"is truncated \(it holds [\d,]+ voxel bytes, the header needs 53,760\)"),
+        ("v.mha", True, r"is truncated \(its compressed voxel stream ends"),
+        ("v.nrrd", False, r"cannot be read \(fread got only .*truncated or corrupt"),
+        ("v.nrrd", True, r"cannot be read \(expected 53760 bytes but received .*truncated or corrupt"),
+    ])
+    def test_truncated(self, volume, tmp_path, name, compress, message):
+        path = tmp_path / name
+        sitk.WriteImage(volume, str(path), useCompression=compress)
+        cut(path)
+        with pytest.raises(InputError, match=message):
+            io.read_image(path)
+
+    def test_nii_gz_truncated_inside_the_last_voxels(self, volume, tmp_path):
+        # SimpleITK alone would return this file with its last voxels zero-filled.
+        path = tmp_path / "v.nii.gz"
+        sitk.WriteImage(volume, str(path))
+        cut(path, 0.99)
+        assert sitk.GetArrayFromImage(sitk.ReadImage(str(path))).shape == SIZE[::-1]
+        with pytest.raises(InputError, match="is truncated"):
+            io.read_image(path)
+
+    @pytest.mark.parametrize("compress", [False, True], ids=["raw", "zraw"])
+    def test_mhd_with_truncated_voxel_file(self, volume, tmp_path, compress):
+        path = tmp_path / "v.mhd"
+        sitk.WriteImage(volume, str(path), useCompression=compress)
+        cut(tmp_path / ("v.zraw" if compress else "v.raw"))
+        with pytest.raises(InputError, match=r"v\.mhd: is truncated"):
+            io.read_image(path)
+
+    def test_mhd_without_voxel_file(self, volume, tmp_path):
+        path = tmp_path / "v.mhd"
+        sitk.WriteImage(volume, str(path), useCompression=False)
+        (tmp_path / "v.raw").unlink()
+        with pytest.raises(InputError, match=r"its voxel file .*v\.raw is missing"):
+            io.read_image(path)
+
+    def test_nii_beside_nii_gz(self, volume, tmp_path):
+        # Measured: ITK reads v.nii when asked for v.nii.gz if both exist.
+        sitk.WriteImage(volume, str(tmp_path / "v.nii.gz"))
+        sitk.WriteImage(volume * 0, str(tmp_path / "v.nii"))
+        with pytest.raises(InputError, match=r"v\.nii lies beside it"):
+            io.read_image(tmp_path / "v.nii.gz")
+
+    def test_two_dimensional(self, tmp_path):
+        path = tmp_path / "slice.nii.gz"
+        sitk.WriteImage(sitk.GetImageFromArray(np.random.default_rng(0).random((24, 20))), str(path))
+        with pytest.raises(InputError, match=r"is 2-D \(size \(20, 24\)\); expected a 3-D volume"):
+            io.read_image(path)
+
+    def test_one_voxel_thick(self, tmp_path):
+        path = tmp_path / "thin.nrrd"
+        sitk.WriteImage(sitk.GetImageFromArray(np.random.default_rng(0).random((1, 24, 20))), str(path))
+        with pytest.raises(InputError, match=r"is effectively 2-D \(size \(20, 24, 1\), one voxel thick along axis 2"):
+            io.read_image(path)
+
+    def test_four_dimensional(self, tmp_path):
+        path = tmp_path / "fmri.nii.gz"
+        nibabel.save(nibabel.Nifti1Image(np.random.default_rng(0).random((20, 24, 28, 3)).astype(np.float32),
+                                         np.eye(4)), path)
+        with pytest.raises(InputError, match=r"is 4-D \(size \(20, 24, 28, 3\)\); extract one volume first"):
+            io.read_image(path)
+
+    def test_vector_pixels(self, volume, tmp_path):
+        path = tmp_path / "field.mha"
+        sitk.WriteImage(sitk.Compose(volume, volume, volume), str(path))
+        with pytest.raises(InputError, match="has 3 components per voxel"):
+            io.read_image(path)
+
+    @pytest.mark.parametrize(("spacing", "message"), [
+        (b"0.001 1 1", r"spacing \(0\.001, 1\.0, 1\.0\) mm is below 0\.01 mm"),
+        (b"250 1 1", r"spacing \(250\.0, 1\.0, 1\.0\) mm is above 100\.0 mm"),
+        (b"-1 1 1", r"spacing \(-1\.0, 1\.0, 1\.0\) mm must be positive"),
+        (b"nan 1 1", r"spacing \(0\.0, 0\.0, 0\.0\) mm must be positive"),  # ITK's parser turns nan into zeros
+    ])
+    def test_absurd_spacing(self, volume, tmp_path, spacing, message):
+        path = tmp_path / "v.mha"
+        volume.SetSpacing((1.0, 1.0, 1.0))
+        sitk.WriteImage(volume, str(path))
+        edit_header(path, b"ElementSpacing = 1 1 1", b"ElementSpacing = " + spacing)
+        with pytest.raises(InputError, match=message):
+            io.read_image(path)
+
+    def test_header_claiming_more_than_memory(self, tmp_path):
+        # Checked from the header alone: the voxel file it names does not exist.
+        path = tmp_path / "huge.mhd"
+        path.write_text("ObjectType = Image\nNDims = 3\nDimSize = 100000 100000 100000\nElementSpacing = 0.5 0.5 0.5\n"
+                        "ElementType = MET_FLOAT\nElementDataFile = huge.raw\n")
+        with pytest.raises(InputError, match=r"1,000,000,000,000,000 voxels\) needs about 14\.2 PiB .*sitk\.Resample"):
+            io.read_image(path)
+
+    def test_memory_limit_is_injectable(self, volume, tmp_path):
+        path = tmp_path / "v.nrrd"
+        sitk.WriteImage(volume, str(path))
+        with pytest.raises(InputError, match=r"needs about 210\.0 KiB .*more than the 100\.0 KiB available"):
+            io.read_image(path, max_bytes=100 * 1024)
+        assert io.read_image(path, max_bytes=1 << 20).GetSize() == SIZE
+
+    @pytest.mark.parametrize("suffix", [".nii.gz", ".nii", ".nrrd", ".mha"])
+    @pytest.mark.parametrize("pixel", [np.float32, np.float64])
+    def test_nan_and_infinite_voxels(self, tmp_path, suffix, pixel):
+        # NIfTI needs its own scan: SimpleITK reads NaN and infinite NIfTI voxels as 0.
+        array = sitk.GetArrayFromImage(make_volume(pixel=pixel))
+        array[0, 0, :2] = np.nan
+        array[-1, -1, -1] = -np.inf
+        path = tmp_path / f"v{suffix}"
+        sitk.WriteImage(sitk.GetImageFromArray(array), str(path))
+        with pytest.raises(InputError, match=r"holds 2 NaN and 1 infinite voxels out of 13440"):
+            io.read_image(path)
+
+    @pytest.mark.parametrize("suffix", [".nii.gz", ".nii"])
+    def test_nan_counted_across_chunk_boundaries(self, tmp_path, monkeypatch, suffix):
+        monkeypatch.setattr(io, "_CHUNK", 999)  # neither the header nor the voxels fall on chunk boundaries
+        array = sitk.GetArrayFromImage(make_volume())
+        array.flat[[0, 249, 250, 5000, array.size - 1]] = (np.nan, np.nan, np.inf, np.nan, np.inf)
+        path = tmp_path / f"v{suffix}"
+        sitk.WriteImage(sitk.GetImageFromArray(array), str(path))
+        with pytest.raises(InputError, match=r"holds 3 NaN and 2 infinite voxels out of 13440"):
+            io.read_image(path)
+        cut(path, 0.7)
+        with pytest.raises(InputError, match="is truncated"):
+            io.read_image(path)
+
+    @pytest.mark.parametrize("suffix", [".mha", ".nii.gz"])
+    def test_highly_compressed_file_is_not_called_truncated(self, tmp_path, monkeypatch, suffix):
+        # 256 KB of zeros inflate from a few hundred bytes: many chunks of output per chunk of input.
+        monkeypatch.setattr(io, "_CHUNK", 1000)
+        path = tmp_path / f"zeros{suffix}"
+        sitk.WriteImage(sitk.Image(40, 40, 40, sitk.sitkFloat32), str(path), useCompression=True)
+        with pytest.raises(InputError, match="all voxels equal 0"):
+            io.read_image(path)
+
+    @pytest.mark.parametrize("value", [0, 7])
+    def test_constant_volume(self, tmp_path, value):
+        path = tmp_path / "blank.nrrd"
+        sitk.WriteImage(sitk.GetImageFromArray(np.full(SIZE[::-1], value, np.int16)), str(path))
+        with pytest.raises(InputError, match=rf"all voxels equal {value}; the volume is blank"):
+            io.read_image(path)
+
+
+class TestReadImageDicom:
+    def test_series_folder(self, tmp_path):
+        expected = write_dicom_series(tmp_path, "1.2.826.0.1.3680043.2.1125.1", "axial CT", slices=6)
+        image = io.read_image(tmp_path)
+        assert_same_geometry(image, expected, 1e-6)
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(image), sitk.GetArrayFromImage(expected))
+
+    def test_several_series_listed_and_chosen(self, tmp_path):
+        write_dicom_series(tmp_path, "1.2.3.1", "axial CT", slices=6)
+        write_dicom_series(tmp_path, "1.2.3.2", "scout", slices=4, seed=2)
+        message = (rf"{re.escape(str(tmp_path))}: holds 2 DICOM series: 1\.2\.3\.1 \(6 files, 'axial CT'\); "
+                   rf"1\.2\.3\.2 \(4 files, 'scout'\); choose one as {re.escape(str(tmp_path))}@UID")
+        with pytest.raises(InputError, match=message):
+            io.read_image(tmp_path)
+        assert io.read_image(f"{tmp_path}@1.2.3.2").GetSize() == (20, 24, 4)
+        assert io.read_image(f"{tmp_path}@1.2.3.1").GetSize() == (20, 24, 6)
+
+    def test_unknown_series_uid(self, tmp_path):
+        write_dicom_series(tmp_path, "1.2.3.1", "axial CT", slices=3)
+        with pytest.raises(InputError, match=r"holds no DICOM series with UID 9\.9; it holds 1\.2\.3\.1 \(3 files"):
+            io.read_image(f"{tmp_path}@9.9")
+
+    def test_folder_without_dicom(self, tmp_path):
+        (tmp_path / "readme.txt").write_text("hello")
+        with pytest.raises(InputError, match=r"is a folder holding no DICOM series \(1 files\)"):
+            io.read_image(tmp_path)
+
+    def test_single_slice_file(self, tmp_path):
+        write_dicom_series(tmp_path, "1.2.3.1", "axial CT", slices=2)
+        with pytest.raises(InputError, match="a single DICOM file is one slice: pass the folder"):
+            io.read_image(next(tmp_path.glob("*.dcm")))
+
+
+class TestReadMask:
+    @staticmethod
+    def write_mask(tmp_path: Path, array: np.ndarray, like: sitk.Image, name: str = "mask.nii.gz") -> Path:
+        mask = sitk.GetImageFromArray(array)
+        mask.CopyInformation(like)
+        sitk.WriteImage(mask, str(tmp_path / name))
+        return tmp_path / name
+
+    def test_binary_mask_on_the_image_grid(self, volume, tmp_path):
+        array = np.zeros(SIZE[::-1], np.float32)
+        array[4:10, 5:15, 3:9] = 255.0
+        mask = io.read_mask(self.write_mask(tmp_path, array, volume), volume)
+        assert mask.GetPixelID() == sitk.sitkUInt8
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(mask), (array > 0).astype(np.uint8))
+        assert_same_geometry(mask, volume)  # NIfTI's float32 geometry snapped onto the image's
+
+    def test_grid_mismatch_shows_both_grids(self, volume, tmp_path):
+        other = sitk.Image(20, 24, 30, sitk.sitkUInt8)
+        other.SetSpacing((1.0, 1.0, 2.0))
+        other[3, 3, 3] = 1
+        path = tmp_path / "m.nrrd"
+        sitk.WriteImage(other, str(path))
+        with pytest.raises(InputError, match=r"m\.nrrd: fixed mask is not on its image's voxel grid \(size \(20, 24, "
+                                             r"30\) vs \(20, 24, 28\), spacing \(1\.0, 1\.0, 2\.0\) vs \(0\.75, 1\.25, "
+                                             r"2\.5\), origin .*sitkNearestNeighbor"):
+            io.read_mask(path, volume, role="fixed mask")
+
+    def test_direction_mismatch(self, volume, tmp_path):
+        array = np.zeros(SIZE[::-1], np.uint8)
+        array[5, 5, 5] = 1
+        path = self.write_mask(tmp_path, array, volume, "m.mha")
+        volume.SetDirection((1, 0, 0, 0, 1, 0, 0, 0, 1))
+        with pytest.raises(InputError, match=r"voxel grid \(.*direction \("):
+            io.read_mask(path, volume)
+
+    def test_empty(self, volume, tmp_path):
+        path = self.write_mask(tmp_path, np.zeros(SIZE[::-1], np.uint8), volume)
+        with pytest.raises(InputError, match=r"mask\.nii\.gz: moving mask is empty \(every voxel is 0\)"):
+            io.read_mask(path, volume, role="moving mask")
+
+    def test_no_background(self, volume, tmp_path):
+        path = self.write_mask(tmp_path, np.ones(SIZE[::-1], np.uint8), volume)
+        with pytest.raises(InputError, match=r"mask has no background \(every voxel is 1\)"):
+            io.read_mask(path, volume)
+
+    def test_label_map_is_not_binary(self, volume, tmp_path):
+        array = np.zeros(SIZE[::-1], np.uint8)
+        array[1, 1, :3] = (1, 2, 5)
+        path = self.write_mask(tmp_path, array, volume)
+        with pytest.raises(InputError, match=r"mask is not binary: found 4 distinct values \(0, 1, 2, 5\)"):
+            io.read_mask(path, volume)
+
+    def test_missing(self, volume, tmp_path):
+        with pytest.raises(InputNotFoundError, match=r"m\.nii\.gz: not found"):
+            io.read_mask(tmp_path / "m.nii.gz", volume)
+
+
+def similarity() -> sitk.Similarity3DTransform:
+    transform = sitk.Similarity3DTransform()
+    transform.SetParameters((0.1, -0.2, 0.3, 4.0, -5.5, 6.25, 1.1))
+    transform.SetCenter((1.0, 2.0, 3.0))
+    return transform
+
+
+class TestReadTransform:
+    @pytest.mark.parametrize("suffix", io.TRANSFORM_SUFFIXES)
+    def test_round_trip(self, tmp_path, suffix):
+        path = tmp_path / f"t{suffix}"
+        sitk.WriteTransform(similarity(), str(path))
+        transform = io.read_transform(path)
+        assert isinstance(transform, sitk.Similarity3DTransform)
+        np.testing.assert_allclose(transform.GetParameters(), similarity().GetParameters(), rtol=0, atol=1e-15)
+        assert transform.GetFixedParameters() == similarity().GetFixedParameters()
+
+    def test_missing(self, tmp_path):
+        with pytest.raises(InputNotFoundError, match=r"t\.tfm: not found"):
+            io.read_transform(tmp_path / "t.tfm")
+
+    def test_garbage(self, tmp_path):
+        path = tmp_path / "t.tfm"
+        path.write_text("hello\n")
+        with pytest.raises(InputError, match=r"t\.tfm: not a readable transform \(Tags must be delimited by :\)"):
+            io.read_transform(path)
+
+    @pytest.mark.parametrize("suffix", [".tfm", ".h5"])
+    def test_truncated(self, tmp_path, suffix):
+        path = tmp_path / f"t{suffix}"
+        sitk.WriteTransform(similarity(), str(path))
+        cut(path, 0.6)
+        with pytest.raises(InputError, match="not a readable transform"):
+            io.read_transform(path)
+
+    def test_two_dimensional(self, tmp_path):
+        path = tmp_path / "t.tfm"
+        sitk.WriteTransform(sitk.Euler2DTransform(), str(path))
+        with pytest.raises(InputError, match="is a 2-D transform; expected a 3-D one"):
+            io.read_transform(path)
+
+    def test_non_finite_parameters(self, tmp_path):
+        # HDF5 stores the NaN as it is; ITK's text parser would refuse it already.
+        path = tmp_path / "t.h5"
+        sitk.WriteTransform(sitk.TranslationTransform(3, (1.0, math.nan, 3.0)), str(path))
+        with pytest.raises(InputError, match="holds NaN or infinite parameters"):
+            io.read_transform(path)
+
+
+class TestAtomicOutput:
+    def test_temporary_beside_with_full_suffix(self, tmp_path):
+        target = tmp_path / "x.nii.gz"
+        with io.atomic_output(target) as temporary:
+            assert temporary.parent == tmp_path and re.fullmatch(r"\.x\.tmp[0-9a-f]{8}\.nii\.gz", temporary.name)
+            temporary.write_text("done")
+        assert target.read_text() == "done" and os.listdir(tmp_path) == ["x.nii.gz"]
+
+    def test_failure_leaves_nothing(self, tmp_path):
+        with pytest.raises(KeyError), io.atomic_output(tmp_path / "x.json") as temporary:
+            temporary.write_text("half")
+            raise KeyError("interrupted")
+        assert os.listdir(tmp_path) == []
+
+    def test_existing_file_replaced_only_on_success(self, tmp_path):
+        target = tmp_path / "report.json"
+        target.write_text("old")
+        with pytest.raises(RuntimeError), io.atomic_output(target) as temporary:
+            temporary.write_text("new")
+            raise RuntimeError("disk on fire")
+        assert target.read_text() == "old" and os.listdir(tmp_path) == ["report.json"]
+        with io.atomic_output(target) as temporary:
+            temporary.write_text("new")
+        assert target.read_text() == "new" and os.listdir(tmp_path) == ["report.json"]
+
+    def test_missing_folder(self, tmp_path):
+        with pytest.raises(InputError, match=r"folder .*absent does not exist; create it first"):
+            with io.atomic_output(tmp_path / "absent" / "x.txt"):
+                pass
+
+
+class TestWriteImage:
+    @pytest.mark.parametrize("suffix", io.IMAGE_WRITE_SUFFIXES)
+    @pytest.mark.parametrize("compress", [False, True], ids=["raw", "compressed"])
+    def test_round_trip(self, volume, tmp_path, suffix, compress):
+        path = tmp_path / f"out{suffix}"
+        io.write_image(volume, path, compress=compress)
+        image = io.read_image(path)
+        assert_same_geometry(image, volume, GEOMETRY_TOLERANCE[suffix])
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(image), sitk.GetArrayFromImage(volume))
+        assert os.listdir(tmp_path) == [path.name]
+
+    def test_compression_shrinks_the_file(self, tmp_path):
+        smooth = sitk.GetImageFromArray(np.tile(np.arange(20, dtype=np.float32), (28, 24, 1)))
+        io.write_image(smooth, tmp_path / "raw.mha", compress=False)
+        io.write_image(smooth, tmp_path / "small.mha")
+        assert (tmp_path / "small.mha").stat().st_size < (tmp_path / "raw.mha").stat().st_size / 2
+
+    def test_two_file_formats_refused(self, volume, tmp_path):
+        with pytest.raises(InputError, match=r"out\.mhd: cannot write an image with this suffix; use \.nii\.gz"):
+            io.write_image(volume, tmp_path / "out.mhd")
+        assert os.listdir(tmp_path) == []
+
+
+class TestWriteTransform:
+    @pytest.mark.parametrize("suffix", io.TRANSFORM_SUFFIXES)
+    def test_round_trip(self, tmp_path, suffix):
+        path = tmp_path / f"t{suffix}"
+        io.write_transform(similarity(), path)
+        np.testing.assert_allclose(sitk.ReadTransform(str(path)).GetParameters(), similarity().GetParameters(),
+                                   rtol=0, atol=1e-15)
+        assert os.listdir(tmp_path) == [path.name]
+
+    def test_unknown_suffix(self, tmp_path):
+        with pytest.raises(InputError, match=r"t\.mat: cannot write a transform with this suffix; use \.tfm"):
+            io.write_transform(similarity(), tmp_path / "t.mat")
+
+
+class TestWriteJson:
+    def test_numpy_values_and_paths(self, tmp_path):
+        path = tmp_path / "report.json"
+        io.write_json({"matrix": np.eye(2), "score": np.float32(0.5), "count": np.int64(3), "ok": np.bool_(True),
+                       "input": Path("a/b.nii.gz"), "shape": (1, 2)}, path)
+        text = path.read_text()
+        assert json.loads(text) == {"matrix": [[1.0, 0.0], [0.0, 1.0]], "score": 0.5, "count": 3, "ok": True,
+                                    "input": "a/b.nii.gz", "shape": [1, 2]}
+        assert text.startswith('{\n  "matrix": [\n') and text.endswith("}\n")
+
+    def test_unserialisable_leaves_nothing(self, tmp_path):
+        with pytest.raises(TypeError, match="set is not JSON serialisable"):
+            io.write_json({"bad": {1, 2}}, tmp_path / "report.json")
+        assert os.listdir(tmp_path) == []
+
+
+class TestWriteText:
+    def test_exact_content(self, tmp_path):
+        path = tmp_path / "summary.csv"
+        io.write_text("id,status\nα,ok\n", path)
+        assert path.read_bytes() == "id,status\nα,ok\n".encode()
+
+
+class TestReadMesh:
+    @pytest.mark.parametrize("suffix", io.MESH_SUFFIXES)
+    def test_round_trip(self, tmp_path, suffix):
+        import pyvista as pv
+
+        sphere = pv.Sphere(radius=7.0, center=(10.0, -20.0, 5.0))
+        path = tmp_path / f"model{suffix}"
+        sphere.save(path)
+        mesh = io.read_mesh(path)
+        assert isinstance(mesh, pv.PolyData) and mesh.n_points == sphere.n_points
+        np.testing.assert_allclose(mesh.bounds, sphere.bounds, atol=1e-5)
+
+    def test_point_cloud(self, tmp_path):
+        import pyvista as pv
+
+        points = np.random.default_rng(0).random((30, 3)) * 50
+        pv.PolyData(points).save(tmp_path / "cloud.vtp")
+        np.testing.assert_allclose(io.read_mesh(tmp_path / "cloud.vtp").points, points, rtol=1e-6)
+
+    def test_volumetric_mesh_becomes_its_surface(self, tmp_path):
+        import pyvista as pv
+
+        pv.Sphere().cast_to_unstructured_grid().save(tmp_path / "solid.vtk")
+        mesh = io.read_mesh(tmp_path / "solid.vtk")
+        assert isinstance(mesh, pv.PolyData) and mesh.n_points == pv.Sphere().n_points
+
+    def test_empty(self, tmp_path):
+        import pyvista as pv
+
+        pv.PolyData().save(tmp_path / "empty.vtp")
+        with pytest.raises(InputError, match=r"empty\.vtp: holds no points"):
+            io.read_mesh(tmp_path / "empty.vtp")
+
+    @pytest.mark.parametrize(("suffix", "message"), [(".stl", "holds no points"), (".vtk", "not a readable mesh")])
+    @pytest.mark.filterwarnings("ignore::UserWarning")  # pyvista's warning about the VTK reader's failure
+    def test_garbage(self, tmp_path, suffix, message):
+        path = tmp_path / f"broken{suffix}"
+        path.write_bytes(b"garbage\x00\x01" * 50)
+        with pytest.raises(InputError, match=rf"broken\{suffix}: {message}"):
+            io.read_mesh(path)
+
+    def test_image_in_a_vtk_file(self, tmp_path):
+        import pyvista as pv
+
+        pv.ImageData(dimensions=(3, 4, 5)).save(tmp_path / "grid.vtk")
+        with pytest.raises(InputError, match="holds ImageData data, not a surface mesh"):
+            io.read_mesh(tmp_path / "grid.vtk")
+
+    def test_missing(self, tmp_path):
+        with pytest.raises(InputNotFoundError, match=r"m\.stl: not found"):
+            io.read_mesh(tmp_path / "m.stl")
+
+
+class TestIsMeshPath:
+    @pytest.mark.parametrize(("path", "expected"), [("a.STL", True), (Path("b.vtp"), True), ("c.obj", True),
+                                                    ("d.nii.gz", False), ("e.vtk.nrrd", False)])
+    def test_by_suffix(self, path, expected):
+        assert io.is_mesh_path(path) is expected
+
+
+class TestImageSummary:
+    def test_known_values(self):
+        image = sitk.GetImageFromArray(np.arange(101, dtype=np.float32).reshape(1, 1, 101).repeat(4, 0).repeat(3, 1))
+        image.SetSpacing((0.5, 2.0, 3.0))
+        image.SetOrigin((1.0, -2.0, 3.5))
+        image.SetDirection((-1, 0, 0, 0, -1, 0, 0, 0, 1))
+        summary = io.image_summary(image)
+        assert summary["size"] == (101, 3, 4) and summary["spacing"] == (0.5, 2.0, 3.0)
+        assert summary["origin"] == (1.0, -2.0, 3.5) and summary["voxels"] == 101 * 3 * 4
+        assert summary["direction"] == [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]
+        assert summary["orientation"] == "RAS" and summary["pixel_type"] == "32-bit float"
+        assert summary["extent_mm"] == (50.5, 6.0, 12.0)
+        assert (summary["intensity_min"], summary["intensity_max"]) == (0.0, 100.0)
+        assert summary["intensity_p1"] == pytest.approx(1.0) and summary["intensity_p99"] == pytest.approx(99.0)
+        assert all(type(summary[k]) is float for k in ("intensity_min", "intensity_p1", "intensity_p99"))
+
+    def test_identity_direction_is_lps(self, volume):
+        volume.SetDirection((1, 0, 0, 0, 1, 0, 0, 0, 1))
+        assert io.image_summary(volume)["orientation"] == "LPS"
