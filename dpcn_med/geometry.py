@@ -12,6 +12,13 @@ Conventions (everything else imports them from here):
 * **Resampling direction.** :func:`warp` pulls: ``out(p) = volume(matrix @ p + translation)``. The solver's contract
   ``fixed(p) ~ moving(scale * rotation @ p + translation)`` therefore reads ``fixed ~ warp(moving, scale * rotation,
   translation)``: the matrix maps fixed voxels to moving voxels (``moving_from_fixed``), ITK's direction.
+* **Physical space.** ITK's LPS, in millimetres. A registration result is a SimpleITK transform ``fixed_to_moving``
+  mapping fixed physical points to moving ones, so ``sitk.Resample(moving, fixed, fixed_to_moving)`` puts the
+  moving image on the fixed grid. A solver pose ``v = mu R u + tau`` on two canonical grids (voxel offsets ``u``,
+  ``v`` from the fixed and moving grid centres ``c_f``, ``c_m``, shared spacing ``h``) is the physical
+  ``T(x) = mu R (x - c_f) + c_m + h tau`` (:func:`physical_transform`).
+* **Slicer.** Slicer models in RAS: a transform node's to-parent matrix is ``inv(F T F)`` with
+  ``F = diag(-1, -1, 1, 1)`` (:func:`slicer_to_parent_ras`).
 """
 
 from __future__ import annotations
@@ -20,9 +27,14 @@ import functools
 import math
 from dataclasses import dataclass
 
+import numpy as np
+import SimpleITK as sitk
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
+"""Homogeneous ``(4, 4)`` change of frame between RAS and LPS (its own inverse)."""
 
 
 def grid_centre(size: int) -> int:
@@ -277,3 +289,88 @@ def warp(volume: Tensor, matrix: Tensor, translation: Tensor | None = None) -> T
     normalised_translation = torch.stack([(translation[..., i] + centre[i]) * scale[i] - 1.0
                                           for i in range(len(sizes))], -1)
     return _grid_sample(volume, affine_points(sizes, normalised_matrix, normalised_translation))
+
+
+def physical_transform(rotation: Tensor, scale: float | None, translation: Tensor, fixed_grid: CanonicalGrid,
+                       moving_grid: CanonicalGrid) -> sitk.Transform:
+    """The physical ``fixed_to_moving`` transform of a solver pose on two canonical grids.
+
+    Args:
+        rotation: ``(3, 3)`` ``moving_from_fixed`` rotation on the grids (identity direction, so also in LPS).
+        scale: isotropic scale ``mu`` (a ``Similarity3DTransform``), or ``None`` for a rigid pose (a
+            ``VersorRigid3DTransform``).
+        translation: ``(3,)`` voxels ``(x, y, z)``, the solver's ``tau``.
+        fixed_grid: the fixed volume's grid (centre ``c_f``, spacing ``h``).
+        moving_grid: the moving volume's grid (centre ``c_m``, the same spacing).
+
+    Returns:
+        ``T(x) = mu R (x - c_f) + c_m + h tau`` (``mu = 1`` when rigid) with its ITK centre at ``c_f``.
+
+    Convention:
+        LPS millimetres, fixed to moving (ITK's resampling direction), as in this module's header.
+    """
+    if not math.isclose(fixed_grid.spacing, moving_grid.spacing, rel_tol=1e-9):
+        raise ValueError(f"grids must share one spacing, got {fixed_grid.spacing} and {moving_grid.spacing} mm")
+    mu = 1.0 if scale is None else float(scale)
+    centre = np.asarray(fixed_grid.centre, dtype=np.float64)
+    matrix = np.eye(4)
+    matrix[:3, :3] = mu * rotation.detach().double().cpu().numpy()
+    matrix[:3, 3] = (np.asarray(moving_grid.centre) + fixed_grid.spacing * translation.detach().double().cpu().numpy()
+                     - matrix[:3, :3] @ centre)
+    return similarity_transform(matrix, centre, rigid=scale is None)
+
+
+def similarity_transform(matrix: np.ndarray, centre: np.ndarray, *, rigid: bool) -> sitk.Transform:
+    """A ``(4, 4)`` similarity matrix as an ITK transform with the given centre (the matrix is unchanged).
+
+    Args:
+        matrix: ``[x', 1] = matrix [x, 1]``, its linear part ``mu R``, R a rotation (projected in float64, since
+            ITK checks orthogonality to 1e-10).
+        centre: ``(3,)`` rotation centre, same frame as ``x``.
+        rigid: a ``VersorRigid3DTransform`` (``mu`` must be 1) or a ``Similarity3DTransform``.
+    """
+    linear = matrix[:3, :3]
+    mu = float(np.cbrt(np.linalg.det(linear)))
+    u, _, vt = np.linalg.svd(linear / mu)
+    rotation = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    transform = sitk.VersorRigid3DTransform() if rigid else sitk.Similarity3DTransform()
+    transform.SetCenter(tuple(float(c) for c in centre))
+    transform.SetMatrix(rotation.flatten().tolist())
+    if not rigid:
+        transform.SetScale(mu)
+    transform.SetTranslation((matrix[:3, 3] + mu * rotation @ centre - centre).tolist())
+    return transform
+
+
+def homogeneous_matrix(transform: sitk.Transform) -> np.ndarray:
+    """``(4, 4)`` matrix of a linear SimpleITK transform (rigid, similarity, affine; composites flattened), same
+    frames as the transform: ``[x', 1] = H [x, 1]``."""
+    linear = np.eye(4)
+    for part in _linear_parts(transform):
+        matrix = np.asarray(part.GetMatrix(), dtype=np.float64).reshape(3, 3)
+        centre = np.asarray(part.GetCenter(), dtype=np.float64)
+        step = np.eye(4)
+        step[:3, :3] = matrix
+        step[:3, 3] = np.asarray(part.GetTranslation(), dtype=np.float64) + centre - matrix @ centre
+        linear = linear @ step  # ITK composites apply the last-added transform first
+    return linear
+
+
+def _linear_parts(transform: sitk.Transform) -> list[sitk.Transform]:
+    if transform.GetName() == "CompositeTransform":
+        composite = sitk.CompositeTransform(transform)
+        return [part for i in range(composite.GetNumberOfTransforms())
+                for part in _linear_parts(composite.GetNthTransform(i))]
+    downcast = transform.Downcast()
+    if not hasattr(downcast, "GetMatrix"):
+        raise ValueError(f"{transform.GetName()} is not a linear transform")
+    return [downcast]
+
+
+def slicer_to_parent_ras(fixed_to_moving: sitk.Transform) -> np.ndarray:
+    """``(4, 4)`` to-parent matrix in RAS of the Slicer transform node equivalent to ``fixed_to_moving`` (LPS).
+
+    Slicer models the moving volume's motion (to parent, RAS); ITK stores the resampling direction (fixed to moving,
+    LPS): ``inv(F T F)``, ``F = diag(-1, -1, 1, 1)``. This is what Slicer builds when it reads the transform file.
+    """
+    return np.linalg.inv(LPS_FROM_RAS @ homogeneous_matrix(fixed_to_moving) @ LPS_FROM_RAS)

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
+import SimpleITK as sitk
 import torch
 
 from dpcn_med.geometry import (
+    LPS_FROM_RAS,
     CanonicalGrid,
     affine_points,
     axis_angle_to_matrix,
@@ -15,13 +18,17 @@ from dpcn_med.geometry import (
     geodesic_distance,
     grid_centre,
     half_turns,
+    homogeneous_matrix,
     matrix_to_euler_zyz,
+    physical_transform,
     project_to_rotation,
     random_rotation,
     rotation_angle,
     rotation_y,
     rotation_z,
     sample,
+    similarity_transform,
+    slicer_to_parent_ras,
     squared_distance_from_centre,
     warp,
 )
@@ -186,3 +193,103 @@ class TestCanonicalGrid:
     def test_origin_puts_the_centre_voxel_at_the_centre(self):
         grid = CanonicalGrid(size=64, spacing=2.5, centre=(10.0, -20.0, 30.0))
         assert grid.origin == (10.0 - 80.0, -20.0 - 80.0, 30.0 - 80.0)
+
+
+def _similarity(seed: int = 3) -> sitk.Similarity3DTransform:
+    rng = np.random.default_rng(seed)
+    transform = sitk.Similarity3DTransform()
+    transform.SetCenter(rng.normal(size=3).tolist())
+    transform.SetRotation(rng.normal(size=3).tolist(), 2.5)  # near the versor's awkward half-turn region
+    transform.SetScale(1.12)
+    transform.SetTranslation((rng.normal(size=3) * 20).tolist())
+    return transform
+
+
+class TestHomogeneousMatrix:
+    def test_matches_transform_point(self):
+        transform = _similarity()
+        matrix = homogeneous_matrix(transform)
+        for point in np.random.default_rng(0).normal(size=(5, 3)) * 50:
+            np.testing.assert_allclose(matrix[:3, :3] @ point + matrix[:3, 3], transform.TransformPoint(point.tolist()),
+                                       atol=1e-9)
+
+    def test_composite_applies_last_added_first(self):
+        first, second = _similarity(1), _similarity(2)
+        composite = sitk.CompositeTransform([first, second])
+        point = [10.0, -20.0, 30.0]
+        expected = composite.TransformPoint(point)
+        matrix = homogeneous_matrix(composite)
+        np.testing.assert_allclose(matrix[:3, :3] @ point + matrix[:3, 3], expected, atol=1e-9)
+
+    def test_rejects_nonlinear(self):
+        with pytest.raises(ValueError, match="not a linear transform"):
+            homogeneous_matrix(sitk.DisplacementFieldTransform(3))
+
+
+class TestSimilarityTransform:
+    @pytest.mark.parametrize("rigid", [True, False])
+    def test_round_trip_keeps_matrix_and_centre(self, rigid):
+        source = _similarity()
+        if rigid:
+            source.SetScale(1.0)
+        centre = np.array([5.0, -7.0, 2.0])
+        rebuilt = similarity_transform(homogeneous_matrix(source), centre, rigid=rigid)
+        assert rebuilt.GetName() == ("VersorRigid3DTransform" if rigid else "Similarity3DTransform")
+        np.testing.assert_allclose(rebuilt.GetFixedParameters(), centre)
+        np.testing.assert_allclose(homogeneous_matrix(rebuilt), homogeneous_matrix(source), atol=1e-9)
+
+
+class TestPhysicalTransform:
+    def test_maps_grid_voxels_as_the_solver_says(self):
+        """Fixed voxel u (from the grid centre) lands on moving voxel v = mu R u + tau, in physical space."""
+        fixed_grid = CanonicalGrid(64, 2.5, (10.0, -20.0, 5.0))
+        moving_grid = CanonicalGrid(64, 2.5, (-30.0, 4.0, 60.0))
+        rotation = axis_angle_to_matrix(torch.tensor([0.4, -1.2, 2.0], dtype=torch.float64))
+        tau = torch.tensor([3.0, -1.5, 7.25], dtype=torch.float64)
+        transform = physical_transform(rotation, 0.9, tau, fixed_grid, moving_grid)
+        u = np.array([5.0, -3.0, 11.0])
+        v = 0.9 * rotation.double().numpy() @ u + tau.double().numpy()
+        fixed_point = np.asarray(fixed_grid.centre) + fixed_grid.spacing * u
+        np.testing.assert_allclose(transform.TransformPoint(fixed_point.tolist()),
+                                   np.asarray(moving_grid.centre) + moving_grid.spacing * v, atol=1e-9)
+        np.testing.assert_allclose(transform.GetFixedParameters(), fixed_grid.centre)
+
+    def test_rigid_gives_a_versor_transform(self):
+        grid = CanonicalGrid(32, 1.0, (0.0, 0.0, 0.0))
+        transform = physical_transform(torch.eye(3), None, torch.zeros(3), grid, grid)
+        assert transform.GetName() == "VersorRigid3DTransform"
+
+    def test_rejects_grids_with_different_spacing(self):
+        with pytest.raises(ValueError, match="share one spacing"):
+            physical_transform(torch.eye(3), None, torch.zeros(3), CanonicalGrid(32, 1.0, (0, 0, 0)),
+                               CanonicalGrid(32, 2.0, (0, 0, 0)))
+
+
+class TestSlicerToParentRas:
+    def test_is_the_inverse_motion_in_ras(self):
+        transform = _similarity()
+        to_parent = slicer_to_parent_ras(transform)
+        # A moving point p (LPS) that the fixed point x maps onto is carried back onto x by the node's motion.
+        x = np.array([12.0, -4.0, 33.0])
+        p = np.asarray(transform.TransformPoint(x.tolist()))
+        p_ras = LPS_FROM_RAS[:3, :3] @ p
+        np.testing.assert_allclose(to_parent[:3, :3] @ p_ras + to_parent[:3, 3], LPS_FROM_RAS[:3, :3] @ x, atol=1e-9)
+
+    @pytest.mark.parametrize("suffix", [".tfm", ".h5"])
+    def test_equals_what_slicer_reads_from_the_file(self, tmp_path, suffix):
+        slicer = pytest.importorskip("slicer", reason="slicer-core (the test extra) is not installed")
+        vtk = pytest.importorskip("vtk")
+        transform = _similarity()
+        path = tmp_path / f"transform{suffix}"
+        sitk.WriteTransform(transform, str(path))
+        scene = slicer.vtkMRMLScene()
+        storage = slicer.vtkMRMLTransformStorageNode()
+        node = slicer.vtkMRMLLinearTransformNode()
+        scene.AddNode(storage)
+        scene.AddNode(node)
+        storage.SetFileName(str(path))
+        assert storage.ReadData(node) == 1
+        matrix = vtk.vtkMatrix4x4()
+        node.GetMatrixTransformToParent(matrix)
+        read = np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+        np.testing.assert_allclose(read, slicer_to_parent_ras(transform), atol=1e-6)

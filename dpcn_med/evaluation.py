@@ -1,0 +1,62 @@
+"""Ground truth in physical space: known similarity transforms applied to real volumes, and the target registration
+error of an estimate against them (tests, benchmarks, the demo)."""
+
+from __future__ import annotations
+
+import numpy as np
+import SimpleITK as sitk
+
+from dpcn_med.geometry import homogeneous_matrix
+from dpcn_med.preprocess import foreground_mask
+
+
+def random_similarity(rng: np.random.Generator, centre: np.ndarray, *, max_shift_mm: float = 40.0,
+                      scale_range: tuple[float, float] = (1.0, 1.0)) -> sitk.Similarity3DTransform:
+    """A random ``fixed_to_moving`` similarity about ``centre`` (LPS, mm): rotation uniform over SO(3), shift of
+    uniform direction and length up to ``max_shift_mm``, scale uniform in ``scale_range``."""
+    quaternion = rng.normal(size=4)
+    quaternion /= np.linalg.norm(quaternion)
+    if quaternion[3] < 0:  # (x, y, z, w) and its negative are the same rotation; a versor wants w >= 0
+        quaternion = -quaternion
+    direction = rng.normal(size=3)
+    shift = direction / np.linalg.norm(direction) * rng.uniform(0.0, max_shift_mm)
+    transform = sitk.Similarity3DTransform()
+    transform.SetCenter(tuple(float(c) for c in centre))
+    transform.SetRotation(tuple(float(q) for q in quaternion))
+    transform.SetScale(float(rng.uniform(*scale_range)))
+    transform.SetTranslation(shift.tolist())
+    return transform
+
+
+def moved_copy(image: sitk.Image, fixed_to_moving: sitk.Transform) -> sitk.Image:
+    """The same voxels placed so that ``moved(T(x)) = image(x)`` for every physical point ``x``, ``T`` a similarity.
+
+    Exact and lossless: a similarity maps the voxel lattice to a lattice, so only the origin, direction and spacing
+    change (``origin' = T(origin)``, ``direction' = R direction``, ``spacing' = mu spacing``); nothing leaves the
+    field of view, whatever the rotation.
+    """
+    matrix = homogeneous_matrix(fixed_to_moving)
+    scale = float(np.cbrt(np.linalg.det(matrix[:3, :3])))
+    rotation = matrix[:3, :3] / scale
+    direction = np.asarray(image.GetDirection(), dtype=np.float64).reshape(3, 3)
+    moved = sitk.Image(image)
+    moved.SetOrigin(fixed_to_moving.TransformPoint(image.GetOrigin()))
+    moved.SetDirection((rotation @ direction).flatten().tolist())
+    moved.SetSpacing([scale * s for s in image.GetSpacing()])
+    return moved
+
+
+def foreground_corners(image: sitk.Image, mask: sitk.Image | None = None) -> np.ndarray:
+    """``(8, 3)`` LPS corners (mm) of the bounding box of ``image``'s foreground (or of ``mask``), in voxel space."""
+    stats = sitk.LabelShapeStatisticsImageFilter()
+    stats.Execute(foreground_mask(image) if mask is None else sitk.Cast(mask > 0, sitk.sitkUInt8))
+    start, size = np.split(np.asarray(stats.GetBoundingBox(1), dtype=np.float64), 2)
+    corners = [start - 0.5 + size * np.array(c) for c in np.ndindex(2, 2, 2)]
+    return np.array([image.TransformContinuousIndexToPhysicalPoint(c.tolist()) for c in corners])
+
+
+def target_registration_error(estimate: sitk.Transform, truth: sitk.Transform, points: np.ndarray) -> float:
+    """Mean distance (mm) between where ``estimate`` and ``truth`` send ``points`` ``(K, 3)`` (both fixed to
+    moving)."""
+    return float(np.mean([np.linalg.norm(np.subtract(estimate.TransformPoint(p.tolist()),
+                                                     truth.TransformPoint(p.tolist()))) for p in points]))
