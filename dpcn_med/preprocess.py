@@ -1,14 +1,52 @@
-"""From a physical image to a solver grid: foreground, intensity normalisation, resampling onto the canonical cube."""
+"""From a physical image to a solver grid: foreground, intensity normalisation, resampling onto the canonical cube;
+surface meshes and point clouds voxelised into images."""
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import SimpleITK as sitk
 import torch
+from monai.transforms import ScaleIntensityRange
 from torch import Tensor
 
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import CanonicalGrid
+
+if TYPE_CHECKING:
+    import pyvista
+
+MODALITIES = ("auto", "ct", "mr", "us")
+
+
+@dataclass(frozen=True)
+class Preprocessing:
+    """How a volume becomes a solver grid; the defaults are the product's.
+
+    Attributes:
+        fill: fraction of the cube's side that the larger foreground diagonal of the pair spans (the rest is padding
+            against wrap-around and room for any rotation).
+        percentiles: foreground percentiles mapped to 0 and 1 for MR and ultrasound.
+        ct_window: Hounsfield units mapped to 0 and 1 for CT (air to 0, soft tissue near the middle, bone saturating).
+        outline_weight: the solver sees this much of the binary foreground blended with the normalised intensities.
+            The outline is shared by every modality, the interior contrast is not: measured on the built-in CT / MR
+            pair, 16 of 16 random poses registered with half and half against 14 of 16 on intensities alone (15 of 16
+            on the mask alone); same-modality pairs do as well or better.
+        max_voxels: larger images are first averaged down (``BinShrink``) to about this many voxels: the canonical
+            grid is far coarser, and foreground detection on a full CT takes seconds.
+        ct_detection_hu: an image whose 1st percentile lies below this is taken for a CT when the modality is "auto"
+            (air, and the scanner's padding, sit near -1000 HU or below; no MR or ultrasound goes there).
+    """
+
+    fill: float = 0.5
+    outline_weight: float = 0.5
+    max_voxels: int = 2_000_000
+    percentiles: tuple[float, float] = (1.0, 99.0)
+    ct_window: tuple[float, float] = (-1000.0, 1000.0)
+    ct_detection_hu: float = -500.0
 
 
 def foreground_mask(image: sitk.Image) -> sitk.Image:
@@ -56,6 +94,43 @@ def normalize_intensity(image: sitk.Image, percentiles: tuple[float, float] = (1
     return out
 
 
+def detect_modality(image: sitk.Image, config: Preprocessing = Preprocessing()) -> str:
+    """``"ct"`` when the image holds Hounsfield units (its 1st percentile is air), ``"mr"`` otherwise.
+
+    Ultrasound cannot be told from MR by its intensities; both use the same robust percentiles.
+    """
+    array = sitk.GetArrayViewFromImage(image)
+    step = max(1, array.size // 1_000_000)  # a strided sample is plenty for a percentile
+    return "ct" if np.percentile(array.ravel()[::step], 1.0) < config.ct_detection_hu else "mr"
+
+
+def normalize_modality(image: sitk.Image, modality: str, mask: sitk.Image, config: Preprocessing = Preprocessing()
+                       ) -> sitk.Image:
+    """Intensities in ``[0, 1]`` by modality: a fixed Hounsfield window for CT, foreground percentiles otherwise.
+
+    Args:
+        image: 3-D image.
+        modality: one of :data:`MODALITIES`; ``"auto"`` uses :func:`detect_modality`.
+        mask: the foreground (or user) mask of ``image``.
+        config: windows and percentiles.
+    """
+    if modality not in MODALITIES:
+        raise InputError(f"modality {modality!r} is not supported; use one of {', '.join(MODALITIES)}")
+    if (detect_modality(image, config) if modality == "auto" else modality) != "ct":
+        return normalize_intensity(image, config.percentiles, mask)
+    low, high = config.ct_window
+    window = ScaleIntensityRange(a_min=low, a_max=high, b_min=0.0, b_max=1.0, clip=True)
+    scaled = np.asarray(window(sitk.GetArrayFromImage(image).astype(np.float32)), dtype=np.float32)
+    out = sitk.GetImageFromArray(scaled)
+    out.CopyInformation(image)
+    return out
+
+
+def masked(image: sitk.Image, mask: sitk.Image) -> sitk.Image:
+    """``image`` with every voxel outside ``mask`` (same grid) set to 0, float32."""
+    return sitk.Mask(sitk.Cast(image, sitk.sitkFloat32), sitk.Cast(mask > 0, sitk.sitkUInt8))
+
+
 def canonical_grid(image: sitk.Image, size: int, *, fill: float = 0.5, spacing: float | None = None,
                    mask: sitk.Image | None = None) -> CanonicalGrid:
     """The canonical cube for one image: centred on its foreground, the foreground diagonal covering ``fill``.
@@ -93,6 +168,72 @@ def to_tensor(image: sitk.Image, *, dtype: torch.dtype = torch.float32) -> Tenso
     return torch.from_numpy(sitk.GetArrayFromImage(image).astype(np.float64)).to(dtype)[None, None]
 
 
+@dataclass
+class PreparedImage:
+    """A volume ready for the canonical grid: normalised intensities blended with the foreground (zero outside a user
+    mask), and the foreground itself.
+
+    Attributes:
+        image: float32 in ``[0, 1]`` on the input's grid (or a coarser one over the same space): what the solver
+            sees.
+        foreground: binary mask on the same grid (within the user's mask when given).
+        modality: ``"ct"``, ``"mr"`` or ``"us"`` as used.
+        centre: ``(3,)`` LPS centre of the foreground's bounding box, mm.
+        diagonal: its corner-to-corner length, mm.
+    """
+
+    image: sitk.Image
+    foreground: sitk.Image
+    modality: str
+    centre: np.ndarray
+    diagonal: float
+
+
+def shrink_factors(image: sitk.Image, max_voxels: int) -> list[int]:
+    """Per-axis ``BinShrink`` factors bringing ``image`` near ``max_voxels``, shrinking fine axes more than coarse
+    ones (a 4 mm slice axis stays as it is next to 1 mm in-plane pixels)."""
+    overall = (np.prod(image.GetSize()) / max_voxels) ** (1 / 3)
+    finest = min(image.GetSpacing())
+    # ceil with slack: 1.4x too many voxels is worth halving the finest axes, 1.2x is not
+    return [max(1, math.ceil(overall * finest / spacing - 0.3)) for spacing in image.GetSpacing()]
+
+
+def prepare(image: sitk.Image, *, modality: str = "auto", mask: sitk.Image | None = None,
+            config: Preprocessing = Preprocessing()) -> PreparedImage:
+    """Normalise an image by modality, find its foreground (within the user's ``mask``, same grid) and blend the two
+    (``config.outline_weight``) into the image the solver sees.
+
+    The result may be on a coarser grid than ``image`` (see ``Preprocessing.max_voxels``); it covers the same space.
+    """
+    factors = shrink_factors(image, config.max_voxels)
+    if max(factors) > 1:
+        image = sitk.BinShrink(image, factors)
+        mask = None if mask is None else sitk.BinShrink(sitk.Cast(mask > 0, sitk.sitkFloat32), factors) >= 0.5
+    foreground = foreground_mask(image)
+    if mask is not None:  # the user's mask says where to look; the object is what is bright there
+        foreground = sitk.And(foreground, sitk.Cast(mask > 0, sitk.sitkUInt8))
+        if not sitk.GetArrayViewFromImage(foreground).any():
+            raise InputError("the mask holds no foreground of its image (only background inside it)")
+    used = detect_modality(image, config) if modality == "auto" else modality
+    normalised = normalize_modality(image, used, foreground, config)
+    if mask is not None:
+        normalised = masked(normalised, mask)
+    weight = config.outline_weight
+    blended = (weight * sitk.Cast(foreground, sitk.sitkFloat32)
+               + (1.0 - weight) * sitk.Cast(normalised, sitk.sitkFloat32))
+    centre, diagonal = foreground_box(image, foreground)
+    return PreparedImage(blended, foreground, used, centre, diagonal)
+
+
+def pair_grids(fixed: PreparedImage, moving: PreparedImage, size: int, config: Preprocessing = Preprocessing()
+               ) -> tuple[CanonicalGrid, CanonicalGrid]:
+    """The two canonical cubes of a pair: one shared spacing, chosen so the larger foreground diagonal spans
+    ``config.fill`` of the side, each centred on its own foreground (DESIGN section 4)."""
+    spacing = max(fixed.diagonal, moving.diagonal) / (config.fill * size)
+    return (CanonicalGrid(size, spacing, tuple(float(c) for c in fixed.centre)),
+            CanonicalGrid(size, spacing, tuple(float(c) for c in moving.centre)))
+
+
 def _normalised_on_grid(image: sitk.Image, size: int, fill: float, spacing: float | None, slice_only: bool
                         ) -> tuple[Tensor, CanonicalGrid]:
     mask = foreground_mask(image)  # once: Otsu and connected components are the slow part
@@ -119,3 +260,43 @@ def solver_slice(image: sitk.Image, size: int, *, fill: float = 0.55, spacing: f
     """
     tensor, _ = _normalised_on_grid(image, size, fill, spacing, slice_only=True)
     return tensor[:, :, 0].to(dtype)
+
+
+def voxelize(mesh: pyvista.DataSet, *, spacing: float = 1.0, margin: float = 10.0) -> sitk.Image:
+    """A surface mesh or point cloud (LPS, mm) as a binary float32 volume, so it registers like any image.
+
+    A closed surface becomes its filled interior (pyvista's ``voxelize_binary_mask``); an open surface or a point
+    cloud becomes the voxels its points fall in, dilated by one voxel so neighbouring points join up.
+
+    Args:
+        mesh: pyvista data set with at least one point, coordinates in LPS millimetres (Slicer's default for saved
+            models since 4.11).
+        spacing: isotropic voxel size, mm.
+        margin: empty border around the mesh's bounding box, mm.
+
+    Returns:
+        Image with identity direction covering the mesh's bounds plus ``margin``; 1 inside, 0 outside.
+    """
+    bounds = np.asarray(mesh.bounds, dtype=np.float64).reshape(3, 2)
+    origin = bounds[:, 0] - margin
+    size = np.ceil((bounds[:, 1] + margin - origin) / spacing).astype(int) + 1
+    surface = mesh.extract_surface(algorithm="dataset_surface") if mesh.n_cells else None
+    closed = surface is not None and surface.n_faces > 0 and surface.is_manifold
+    if closed:
+        import pyvista as pv  # imported here: pyvista pulls in VTK, which takes a second
+
+        reference = pv.ImageData(dimensions=size.tolist(), spacing=(spacing,) * 3, origin=origin.tolist())
+        filled = surface.voxelize_binary_mask(reference_volume=reference)
+        # VTK point data runs x fastest, the same memory order as a SimpleITK [z, y, x] array.
+        array = np.asarray(filled.point_data["mask"], dtype=np.float32).reshape(size[::-1])
+    else:
+        array = np.zeros(size[::-1], dtype=np.float32)
+        index = np.rint((np.asarray(mesh.points, dtype=np.float64) - origin) / spacing).astype(int)
+        array[index[:, 2], index[:, 1], index[:, 0]] = 1.0
+    image = sitk.GetImageFromArray(array)
+    image.SetOrigin(origin.tolist())
+    image.SetSpacing((spacing,) * 3)
+    if not closed:
+        dilated = sitk.BinaryDilate(sitk.Cast(image, sitk.sitkUInt8), (1, 1, 1), sitk.sitkBox)
+        image = sitk.Cast(dilated, sitk.sitkFloat32)
+    return image

@@ -10,13 +10,20 @@ import torch
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import grid_centre
 from dpcn_med.preprocess import (
+    Preprocessing,
     canonical_grid,
+    detect_modality,
     foreground_box,
     normalize_intensity,
+    normalize_modality,
+    pair_grids,
+    prepare,
     resample_to_grid,
+    shrink_factors,
     solver_grid,
     solver_slice,
     to_tensor,
+    voxelize,
 )
 
 
@@ -92,3 +99,100 @@ class TestSolverGrid:
     def test_to_tensor_rejects_2d_images(self):
         with pytest.raises(InputError, match="image is 2-D"):
             to_tensor(sitk.Image([8, 8], sitk.sitkFloat32))
+
+
+def _ct_like() -> sitk.Image:
+    """Air at -1000 HU with a water cylinder (0 HU) holding a bone rod (1000 HU), int16."""
+    array = np.full((30, 40, 40), -1000, dtype=np.int16)
+    z, y, x = np.mgrid[:30, :40, :40]
+    array[(y - 20) ** 2 + (x - 18) ** 2 < 12 ** 2] = 0
+    array[(y - 24) ** 2 + (x - 14) ** 2 < 3 ** 2] = 1000
+    return sitk.GetImageFromArray(array)
+
+
+class TestDetectModality:
+    def test_ct_by_its_air(self):
+        assert detect_modality(_ct_like()) == "ct"
+
+    def test_mr_otherwise(self):
+        assert detect_modality(_box_image()) == "mr"
+
+
+class TestNormalizeModality:
+    def test_ct_uses_the_hounsfield_window(self):
+        image = _ct_like()
+        low, high = Preprocessing().ct_window
+        out = sitk.GetArrayFromImage(normalize_modality(image, "ct", image > -500))
+        assert out.min() == pytest.approx(0.0) and out.max() == pytest.approx(min(1.0, (1000 - low) / (high - low)))
+        assert out[15, 20, 18] == pytest.approx((0 - low) / (high - low))
+
+    def test_mr_uses_foreground_percentiles(self):
+        image = _box_image()
+        out = sitk.GetArrayFromImage(normalize_modality(image, "mr", image > 50))
+        assert out.max() <= 1.0 and out.min() >= 0.0
+
+    def test_unknown_modality(self):
+        with pytest.raises(InputError, match="modality 'pet' is not supported"):
+            normalize_modality(_box_image(), "pet", _box_image() > 50)
+
+
+class TestPrepare:
+    def test_user_mask_zeroes_the_rest_and_sets_the_centre(self):
+        image = _box_image()
+        ramp = sitk.GetImageFromArray(np.broadcast_to(np.arange(1.0, 41.0, dtype=np.float32), (16, 20, 40)).copy())
+        ramp.CopyInformation(image)
+        image = image * ramp  # not constant inside the mask, so percentiles spread it over [0, 1]
+        mask = sitk.Image(image.GetSize(), sitk.sitkUInt8)
+        mask.CopyInformation(image)
+        mask[10:20, 5:15, 8:12] = 1  # the box's first half along x
+        prepared = prepare(image, mask=mask)
+        array = sitk.GetArrayFromImage(prepared.image)
+        assert array[8:12, 5:15, 20:30].max() == 0.0 and array[8:12, 5:15, 10:20].mean() > 0.2
+        expected = image.TransformContinuousIndexToPhysicalPoint((14.5, 9.5, 9.5))
+        np.testing.assert_allclose(prepared.centre, expected, atol=1e-9)
+
+    def test_large_images_are_shrunk_but_cover_the_same_space(self):
+        image = _box_image()
+        prepared = prepare(image, config=Preprocessing(max_voxels=2000))
+        assert np.prod(prepared.image.GetSize()) < np.prod(image.GetSize())
+        centre, _ = foreground_box(image)
+        np.testing.assert_allclose(prepared.centre, centre, atol=2.0)
+
+
+class TestShrinkFactors:
+    def test_keeps_coarse_axes(self):
+        image = sitk.Image([256, 256, 26], sitk.sitkInt16)
+        image.SetSpacing((1.25, 1.25, 4.0))
+        assert shrink_factors(image, 500_000) == [2, 2, 1]
+
+    def test_small_images_untouched(self):
+        assert shrink_factors(_box_image(), 2_000_000) == [1, 1, 1]
+
+
+class TestPairGrids:
+    def test_shared_spacing_covers_the_larger_foreground(self):
+        small, large = prepare(_box_image()), prepare(_ct_like())
+        fixed_grid, moving_grid = pair_grids(small, large, 32, Preprocessing(fill=0.5))
+        assert fixed_grid.spacing == moving_grid.spacing
+        assert fixed_grid.spacing == pytest.approx(max(small.diagonal, large.diagonal) / 16)
+        np.testing.assert_allclose(moving_grid.centre, large.centre)
+
+
+class TestVoxelize:
+    def test_closed_surface_is_filled(self):
+        pv = pytest.importorskip("pyvista")
+        sphere = pv.Sphere(radius=10.0, center=(5.0, -3.0, 20.0), theta_resolution=60, phi_resolution=60)
+        image = voxelize(sphere, spacing=1.0)
+        array = sitk.GetArrayFromImage(image)
+        assert array.sum() == pytest.approx(4 / 3 * np.pi * 1000, rel=0.05)
+        centre, _ = foreground_box(image)
+        np.testing.assert_allclose(centre, (5.0, -3.0, 20.0), atol=1.0)
+
+    def test_point_cloud_marks_its_points(self):
+        pv = pytest.importorskip("pyvista")
+        points = np.array([[0.0, 0.0, 0.0], [20.0, 5.0, -4.0]])
+        image = voxelize(pv.PolyData(points), spacing=2.0)
+        for point in points:
+            index = image.TransformPhysicalPointToIndex(point.tolist())
+            assert image[index] == 1.0
+        assert sitk.GetArrayFromImage(image).sum() == 2 * 27  # each point dilated to a 3 x 3 x 3 block
