@@ -1,0 +1,348 @@
+"""The public registration API: two volumes (files or SimpleITK images) in, a physical transform out.
+
+``register`` reads and checks the inputs (:mod:`dpcn_med.io`), normalises them and resamples both onto canonical
+cubes with one shared spacing (:mod:`dpcn_med.preprocess`), solves for the pose globally with the DPC solver
+(:mod:`dpcn_med.solver`), turns it into an ITK transform (:func:`dpcn_med.geometry.physical_transform`) and, by
+default, polishes it locally with SimpleITK's Mattes mutual information.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import SimpleITK as sitk
+import torch
+
+from dpcn_med import io
+from dpcn_med.errors import InputError
+from dpcn_med.geometry import (
+    CanonicalGrid,
+    homogeneous_matrix,
+    physical_transform,
+    rotation_angle,
+    similarity_transform,
+)
+from dpcn_med.preprocess import MODALITIES, Preprocessing, pair_grids, prepare, resample_to_grid, to_tensor
+from dpcn_med.solver import solve
+from dpcn_med.solver.validation import check_mode
+
+ImageLike = str | os.PathLike | sitk.Image
+Progress = Callable[[str, float], None]
+"""``progress(stage, fraction)``: the stage's name and the fraction of the whole job done, in ``[0, 1]``."""
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """Settings of the local Mattes mutual-information refinement (SimpleITK), defined once.
+
+    Attributes:
+        shrink_factors: image pyramid, coarse to fine.
+        smoothing_mm: Gaussian sigma per level, mm.
+        samples: random metric samples per level (capped at every voxel).
+        histogram_bins: Mattes histogram bins.
+        iterations: optimiser iterations per level.
+        max_step_mm: largest first step of the regular-step gradient descent, as a physical shift in mm.
+        mask_margin_voxels: the fixed foreground, dilated by this many (preprocessing) voxels, is where the metric is
+            sampled when the user gives no fixed mask.
+        seed: sampling seed (the same inputs give the same result).
+    """
+
+    shrink_factors: tuple[int, ...] = (4, 2, 1)
+    smoothing_mm: tuple[float, ...] = (2.0, 1.0, 0.0)
+    samples: int = 30_000
+    histogram_bins: int = 32
+    iterations: int = 100
+    max_step_mm: float = 2.0
+    mask_margin_voxels: int = 3
+    seed: int = 20261123
+
+
+@dataclass
+class RegistrationResult:
+    """What :func:`register` found.
+
+    Attributes:
+        fixed_to_moving: the final transform (refined unless refinement was off or did not improve the metric), LPS
+            mm, fixed points to moving points: ``sitk.Resample(moving, fixed, fixed_to_moving)`` aligns them. A
+            ``VersorRigid3DTransform`` (rigid) or ``Similarity3DTransform`` (similarity), centred at the fixed grid's
+            centre.
+        moving_to_fixed: its inverse.
+        dpc_transform: the solver's global estimate, before refinement.
+        confidence: the solver's confidence in ``[0, 1]`` (mass of the translation peak).
+        mode: ``"rigid"`` or ``"similarity"``.
+        bandwidth: ``B``; the canonical grids are ``(2B)^3``.
+        fixed_grid: canonical cube of the fixed volume.
+        moving_grid: canonical cube of the moving volume (same spacing).
+        modalities: ``(fixed, moving)`` modality used for intensity normalisation.
+        metric: Mattes mutual information (SimpleITK's sign: lower is better) at ``"stored"`` (identity),
+            ``"dpc"`` and ``"refined"`` (``None`` without refinement).
+        refined: whether ``fixed_to_moving`` is the refined transform.
+        timings: wall-clock seconds per step (``read``, ``preprocess``, ``solve``, ``refine``, ``resample``) and
+            per solver stage (``solver.*``).
+        device: the torch device the solver ran on.
+        fixed_image: the fixed input as read.
+        moving_image: the moving input as read.
+        resampled: the moving image on the fixed grid, when asked for.
+    """
+
+    fixed_to_moving: sitk.Transform
+    moving_to_fixed: sitk.Transform
+    dpc_transform: sitk.Transform
+    confidence: float
+    mode: str
+    bandwidth: int
+    fixed_grid: CanonicalGrid
+    moving_grid: CanonicalGrid
+    modalities: tuple[str, str]
+    metric: dict[str, float | None]
+    refined: bool
+    timings: dict[str, float] = field(default_factory=dict)
+    device: str = "cpu"
+    fixed_image: sitk.Image | None = None
+    moving_image: sitk.Image | None = None
+    resampled: sitk.Image | None = None
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary: both estimates as 4x4 matrices and parameters, confidence, metric, timings."""
+        return {
+            "mode": self.mode, "bandwidth": self.bandwidth, "device": self.device,
+            "confidence": self.confidence, "modalities": {"fixed": self.modalities[0], "moving": self.modalities[1]},
+            "canonical_grid": {"size": self.fixed_grid.size, "spacing_mm": self.fixed_grid.spacing,
+                               "fixed_centre_lps": list(self.fixed_grid.centre),
+                               "moving_centre_lps": list(self.moving_grid.centre)},
+            "dpc": describe_transform(self.dpc_transform),
+            "final": describe_transform(self.fixed_to_moving),
+            "refined": self.refined, "mattes_mutual_information": self.metric, "timings_s": self.timings,
+        }
+
+
+def describe_transform(fixed_to_moving: sitk.Transform) -> dict:
+    """A transform as JSON: ITK name, parameters, centre, the 4x4 LPS matrix, rotation angle and scale."""
+    matrix = homogeneous_matrix(fixed_to_moving)
+    linear = matrix[:3, :3]
+    scale = float(np.cbrt(np.linalg.det(linear)))
+    angle = float(np.degrees(rotation_angle(torch.from_numpy(linear / scale)).item()))
+    return {"type": fixed_to_moving.GetName(), "parameters": list(fixed_to_moving.GetParameters()),
+            "fixed_parameters": list(fixed_to_moving.GetFixedParameters()),
+            "fixed_to_moving_lps": matrix.tolist(), "rotation_degrees": angle, "scale": scale,
+            "translation_mm": matrix[:3, 3].tolist()}
+
+
+def resolve_device(device: str) -> torch.device:
+    """``"auto"`` (CUDA when available, else CPU), ``"cpu"``, ``"cuda"`` or ``"cuda:N"``."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        resolved = torch.device(device)
+    except RuntimeError as error:
+        raise InputError(f"device {device!r} is not valid; use auto, cpu, cuda or cuda:N") from error
+    if resolved.type == "cuda" and not torch.cuda.is_available():
+        raise InputError(f"device {device!r} asked for, but this torch build sees no CUDA GPU; use --device cpu")
+    if resolved.type not in ("cpu", "cuda"):
+        raise InputError(f"device {device!r} is not supported; use auto, cpu, cuda or cuda:N")
+    return resolved
+
+
+def load_image(source: ImageLike) -> sitk.Image:
+    """A checked 3-D volume from a path (image, DICOM folder, surface mesh or point cloud) or a SimpleITK image."""
+    if isinstance(source, sitk.Image):
+        if source.GetDimension() != 3 or source.GetNumberOfComponentsPerPixel() != 1:
+            raise InputError(f"image is {source.GetDimension()}-D with {source.GetNumberOfComponentsPerPixel()} "
+                             "component(s) per voxel; expected a 3-D scalar volume")
+        return source
+    if io.is_mesh_path(source):
+        from dpcn_med.preprocess import voxelize
+
+        return voxelize(io.read_mesh(source))
+    return io.read_image(source)
+
+
+def _load_mask(source: ImageLike | None, image: sitk.Image) -> sitk.Image | None:
+    if source is None or isinstance(source, sitk.Image):
+        return source
+    return io.read_mask(source, image)
+
+
+def check_model(model: str | os.PathLike | None) -> None:
+    """Only the learning-free solver exists in this release; say so clearly for anything else."""
+    if model is not None and str(model).lower() not in ("none", "learning-free"):
+        raise InputError(f"model {str(model)!r}: learned feature extractors are not part of dpcn_med yet; use "
+                         "model=None (the learning-free solver, --model none)")
+
+
+def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model: str | os.PathLike | None = None,
+             bandwidth: int = 32, refine: bool = True, device: str = "auto",
+             fixed_mask: ImageLike | None = None, moving_mask: ImageLike | None = None,
+             fixed_modality: str = "auto", moving_modality: str = "auto", resample: bool = False,
+             preprocessing: Preprocessing | None = None, refinement: Refinement | None = None,
+             progress: Progress | None = None) -> RegistrationResult:
+    """Register ``moving`` onto ``fixed`` from any starting pose.
+
+    Args:
+        fixed: the reference volume: a path (NIfTI, NRRD, MHA/MHD, a DICOM folder, or a surface mesh / point cloud
+            in LPS) or a SimpleITK image.
+        moving: the volume to align, same kinds.
+        mode: ``"rigid"`` (6 DoF) or ``"similarity"`` (7 DoF, isotropic scale).
+        model: ``None`` for the learning-free solver (the only one in this release).
+        bandwidth: solver bandwidth ``B``; grids are ``(2B)^3`` (32: fast on a CPU; 64: finer before refinement).
+        refine: polish the global estimate with multi-resolution Mattes mutual information.
+        device: ``"auto"``, ``"cpu"``, ``"cuda"`` or ``"cuda:N"`` for the solver.
+        fixed_mask: binary mask on the fixed image's grid: only it is registered (also restricts the refinement).
+        moving_mask: the same for the moving image.
+        fixed_modality: ``"auto"``, ``"ct"``, ``"mr"`` or ``"us"`` (intensity normalisation).
+        moving_modality: the same for the moving image.
+        resample: also return the moving image resampled on the fixed grid.
+        preprocessing: canonical-grid and intensity settings (default :class:`Preprocessing`).
+        refinement: refinement settings (default :class:`Refinement`).
+        progress: called with ``(stage, fraction done)`` as the work advances.
+
+    Returns:
+        A :class:`RegistrationResult`; ``result.fixed_to_moving`` maps fixed physical points (LPS, mm) to moving
+        ones.
+
+    Raises:
+        InputError: unreadable or unusable inputs, masks or options; the message names the file and the problem.
+    """
+    report = progress or (lambda stage, fraction: None)
+    preprocessing = preprocessing or Preprocessing()
+    refinement = refinement or Refinement()
+    mode = check_mode(mode)
+    check_model(model)
+    for name, value in (("fixed_modality", fixed_modality), ("moving_modality", moving_modality)):
+        if value not in MODALITIES:
+            raise InputError(f"{name} {value!r} is not supported; use one of {', '.join(MODALITIES)}")
+    torch_device = resolve_device(device)
+    timings: dict[str, float] = {}
+
+    start = time.perf_counter()
+    report("reading", 0.0)
+    fixed_image, moving_image = load_image(fixed), load_image(moving)
+    fixed_mask_image, moving_mask_image = _load_mask(fixed_mask, fixed_image), _load_mask(moving_mask, moving_image)
+    timings["read"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    report("preprocessing", 0.1)
+    size = 2 * bandwidth
+    fixed_prepared = prepare(fixed_image, modality=fixed_modality, mask=fixed_mask_image, config=preprocessing)
+    moving_prepared = prepare(moving_image, modality=moving_modality, mask=moving_mask_image, config=preprocessing)
+    fixed_grid, moving_grid = pair_grids(fixed_prepared, moving_prepared, size, preprocessing)
+    fixed_tensor = to_tensor(resample_to_grid(fixed_prepared.image, fixed_grid)).to(torch_device)
+    moving_tensor = to_tensor(resample_to_grid(moving_prepared.image, moving_grid)).to(torch_device)
+    timings["preprocess"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    report("solving", 0.3)
+    solution = solve(fixed_tensor, moving_tensor, mode, bandwidth=bandwidth, profile=True)
+    timings["solve"] = time.perf_counter() - start
+    timings.update({f"solver.{stage}": seconds for stage, seconds in solution.timings.items()})
+    scale = float(solution.scale[0]) if mode == "similarity" else None
+    dpc = physical_transform(solution.rotation[0], scale, solution.translation[0], fixed_grid, moving_grid)
+
+    metric: dict[str, float | None] = {"stored": None, "dpc": None, "refined": None}
+    final, refined = dpc, False
+    if refine:
+        start = time.perf_counter()
+        report("refining", 0.4)
+        # Without a user mask, sample the metric on the fixed foreground (a few mm wider): background air otherwise
+        # dominates the joint histogram.
+        sampled = fixed_mask_image if fixed_mask_image is not None else sitk.BinaryDilate(
+            fixed_prepared.foreground, [refinement.mask_margin_voxels] * 3)
+        masks = (sampled, moving_mask_image)
+        metric["stored"] = mattes_metric(fixed_image, moving_image, sitk.Transform(3, sitk.sitkIdentity), masks,
+                                         refinement)
+        metric["dpc"] = mattes_metric(fixed_image, moving_image, dpc, masks, refinement)
+        candidate = refine_transform(fixed_image, moving_image, dpc, masks, refinement,
+                                     lambda fraction: report("refining", 0.4 + 0.5 * fraction))
+        metric["refined"] = mattes_metric(fixed_image, moving_image, candidate, masks, refinement)
+        # The local optimiser only ever starts from the global estimate; keep it only if it improved the metric.
+        if metric["refined"] <= metric["dpc"]:
+            final, refined = candidate, True
+        timings["refine"] = time.perf_counter() - start
+
+    resampled = None
+    if resample:
+        start = time.perf_counter()
+        report("resampling", 0.9)
+        resampled = resample_moving(fixed_image, moving_image, final)
+        timings["resample"] = time.perf_counter() - start
+    report("done", 1.0)
+    return RegistrationResult(
+        fixed_to_moving=final, moving_to_fixed=final.GetInverse(), dpc_transform=dpc,
+        confidence=float(solution.confidence[0]), mode=mode, bandwidth=bandwidth, fixed_grid=fixed_grid,
+        moving_grid=moving_grid, modalities=(fixed_prepared.modality, moving_prepared.modality), metric=metric,
+        refined=refined, timings=timings, device=str(torch_device), fixed_image=fixed_image,
+        moving_image=moving_image, resampled=resampled)
+
+
+def resample_moving(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform) -> sitk.Image:
+    """The moving image on the fixed grid (linear), its pixel type kept, outside filled with its minimum."""
+    background = float(sitk.GetArrayViewFromImage(moving).min())
+    return sitk.Resample(moving, fixed, fixed_to_moving, sitk.sitkLinear, background, moving.GetPixelID())
+
+
+def _registration_method(fixed: sitk.Image, masks: tuple[sitk.Image | None, sitk.Image | None],
+                         settings: Refinement) -> sitk.ImageRegistrationMethod:
+    method = sitk.ImageRegistrationMethod()
+    method.SetMetricAsMattesMutualInformation(numberOfHistogramBins=settings.histogram_bins)
+    method.SetInterpolator(sitk.sitkLinear)
+    # Gradients at the sample points only: ITK's default filters the whole image, seconds on a 1 mm head.
+    method.MetricUseFixedImageGradientFilterOff()
+    method.MetricUseMovingImageGradientFilterOff()
+    if masks[0] is not None:
+        method.SetMetricFixedMask(masks[0])
+    if masks[1] is not None:
+        method.SetMetricMovingMask(masks[1])
+    method.SetMetricSamplingStrategy(method.RANDOM)
+    voxels = np.prod(fixed.GetSize())
+    fractions = [min(1.0, settings.samples * factor ** 3 / voxels) for factor in settings.shrink_factors]
+    method.SetMetricSamplingPercentagePerLevel(fractions, settings.seed)
+    return method
+
+
+def mattes_metric(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform,
+                  masks: tuple[sitk.Image | None, sitk.Image | None], settings: Refinement = Refinement()) -> float:
+    """Mattes mutual information of the pair under ``fixed_to_moving`` at full resolution (lower is better)."""
+    method = _registration_method(fixed, masks, settings)
+    method.SetMetricSamplingPercentage(min(1.0, 4 * settings.samples / np.prod(fixed.GetSize())), settings.seed)
+    method.SetInitialTransform(fixed_to_moving)
+    return method.MetricEvaluate(sitk.Cast(fixed, sitk.sitkFloat32), sitk.Cast(moving, sitk.sitkFloat32))
+
+
+def refine_transform(fixed: sitk.Image, moving: sitk.Image, initial: sitk.Transform,
+                     masks: tuple[sitk.Image | None, sitk.Image | None], settings: Refinement = Refinement(),
+                     progress: Callable[[float], None] | None = None) -> sitk.Transform:
+    """Multi-resolution Mattes mutual-information registration started from ``initial``.
+
+    The optimiser moves a residual transform ``D`` near the identity and the result is ``initial o D``: a versor
+    parameterises rotations badly near 180 degrees (its scalar part vanishes), where a global estimate often lies.
+
+    Returns:
+        A new transform of ``initial``'s type (rigid or similarity), fixed to moving, same centre; ``initial`` is left
+        untouched.
+    """
+    method = _registration_method(fixed, masks, settings)
+    method.SetOptimizerAsRegularStepGradientDescent(learningRate=settings.max_step_mm, minStep=1e-2,
+                                                    numberOfIterations=settings.iterations,
+                                                    relaxationFactor=0.5, gradientMagnitudeTolerance=1e-6)
+    method.SetOptimizerScalesFromPhysicalShift()
+    method.SetShrinkFactorsPerLevel(list(settings.shrink_factors))
+    method.SetSmoothingSigmasPerLevel(list(settings.smoothing_mm))
+    method.SmoothingSigmasAreSpecifiedInPhysicalUnitsOn()
+    rigid = initial.GetName() == "VersorRigid3DTransform"
+    centre = initial.GetFixedParameters()[:3]
+    residual = sitk.VersorRigid3DTransform() if rigid else sitk.Similarity3DTransform()
+    residual.SetCenter(centre)
+    method.SetMovingInitialTransform(initial)
+    method.SetInitialTransform(residual, inPlace=True)
+    if progress is not None:
+        levels = len(settings.shrink_factors)
+        method.AddCommand(sitk.sitkMultiResolutionIterationEvent,
+                          lambda: progress(method.GetCurrentLevel() / levels))
+    method.Execute(sitk.Cast(fixed, sitk.sitkFloat32), sitk.Cast(moving, sitk.sitkFloat32))
+    # ITK's registration maps a fixed point through the optimised transform first, then the moving initial one.
+    return similarity_transform(homogeneous_matrix(initial) @ homogeneous_matrix(residual), np.asarray(centre),
+                                rigid=rigid)

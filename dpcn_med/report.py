@@ -1,0 +1,286 @@
+"""Reports of a registration: the report.json content, orthogonal planes through a point and the overview PNG."""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+from collections.abc import Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import SimpleITK as sitk
+
+from dpcn_med import __version__
+from dpcn_med.errors import InputError
+from dpcn_med.geometry import grid_centre, slicer_to_parent_ras
+from dpcn_med.preprocess import foreground_box
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+    from dpcn_med.register import RegistrationResult
+
+PLANE_AXES: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
+    "axial": ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+    "coronal": ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0)),
+    "sagittal": ((0.0, 1.0, 0.0), (0.0, 0.0, -1.0)),
+}
+"""LPS unit vectors along which the columns and the rows of each plane run, in the order returned by
+:func:`orthogonal_planes`. Radiological display: patient left on the image right, anterior (axial) or superior
+(coronal, sagittal) at the top, anterior on the left of the sagittal plane as in 3D Slicer."""
+
+PLANE_EDGE_LABELS: dict[str, tuple[str, str, str, str]] = {
+    "axial": ("R", "L", "A", "P"),
+    "coronal": ("R", "L", "S", "I"),
+    "sagittal": ("A", "P", "S", "I"),
+}
+"""Patient direction at the (left, right, top, bottom) edge of each plane of :data:`PLANE_AXES`."""
+
+OVERVIEW_ROWS = ("before (as stored)", "after registration", "after: checkerboard")
+OVERVIEW_PIXELS = 256
+OVERVIEW_WIDTH_PX = 1500
+CHECKER_SQUARES = 8
+"""Squares along each side of the checkerboard panels."""
+WINDOW_PERCENTILES = (1.0, 99.0)
+CONTOUR_COLOURS = ("#ffe600", "#ff2bd6")
+"""One bright colour per contour level, in increasing intensity, readable on greyscale."""
+STATISTICS_SIDE = 128
+"""Images are subsampled to at most this many voxels per side for percentiles, thresholds and the foreground
+centre: their estimates barely change, and full-resolution passes over a 256^3 volume would cost seconds."""
+
+
+def registration_report(result: RegistrationResult, *, fixed: str | os.PathLike | sitk.Image,
+                        moving: str | os.PathLike | sitk.Image, fixed_mask: str | os.PathLike | None = None,
+                        moving_mask: str | os.PathLike | None = None, min_confidence: float,
+                        outputs: Sequence[str] = ()) -> dict:
+    """The content of ``report.json``: inputs and their geometry, both estimates, confidence and its verdict, metric
+    values, timings, the Slicer to-parent RAS matrix, versions and conventions (JSON-ready)."""
+    import torch
+
+    def described(source, image: sitk.Image | None) -> dict:
+        entry = {"path": None if isinstance(source, sitk.Image) else str(source)}
+        if image is not None:
+            entry.update(size=list(image.GetSize()), spacing_mm=list(image.GetSpacing()),
+                         origin_lps=list(image.GetOrigin()),
+                         direction=np.asarray(image.GetDirection()).reshape(3, 3).tolist(),
+                         pixel_type=image.GetPixelIDTypeAsString())
+        return entry
+
+    return {
+        "status": "ok" if result.confidence >= min_confidence else "low confidence",
+        "min_confidence": min_confidence,
+        "inputs": {"fixed": described(fixed, result.fixed_image), "moving": described(moving, result.moving_image),
+                   "fixed_mask": None if fixed_mask is None else str(fixed_mask),
+                   "moving_mask": None if moving_mask is None else str(moving_mask)},
+        **result.to_dict(),
+        "slicer_to_parent_ras": slicer_to_parent_ras(result.fixed_to_moving).tolist(),
+        "conventions": "LPS millimetres; the transforms map fixed points to moving points (ITK's resampling "
+                       "direction): sitk.Resample(moving, fixed, transform) aligns them. Slicer's to-parent RAS "
+                       "matrix is inv(F T F), F = diag(-1, -1, 1, 1). Mattes mutual information: lower is better.",
+        "outputs": list(outputs),
+        "version": __version__,
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "software": {"python": platform.python_version(), "torch": torch.__version__,
+                     "SimpleITK": sitk.Version_VersionString()},
+    }
+
+
+def orthogonal_planes(image: sitk.Image, centre: Sequence[float], *, extent: float, pixels: int = 256,
+                      transform: sitk.Transform | None = None, default: float = 0.0) -> list[np.ndarray]:
+    """The axial, coronal and sagittal planes of ``image`` through a physical point, for display.
+
+    Each plane is a square of ``pixels x pixels`` samples, ``extent / pixels`` mm apart, aligned with the LPS axes,
+    sampled by linear interpolation (SimpleITK resampling onto a one-voxel-thick reference image).
+
+    Args:
+        image: 3-D image, any spacing and direction.
+        centre: ``(x, y, z)`` LPS point in mm the three planes pass through.
+        extent: side of each plane in mm.
+        pixels: samples along each side.
+        transform: ``fixed_to_moving`` when ``image`` is the moving image: the plane point ``p`` shows
+            ``image(transform(p))``, so moving planes through a registration result line up with the fixed planes
+            through the same ``centre``. ``None`` samples the image as stored (identity).
+        default: value where a plane leaves the image.
+
+    Returns:
+        ``[axial, coronal, sagittal]``, float32 arrays ``(pixels, pixels)`` indexed ``[row, column]``, pixel
+        ``(pixels // 2, pixels // 2)`` at ``centre``, indices increasing towards:
+
+        * axial (``z = centre z``): columns to patient left (+x), rows to posterior (+y); anterior at the top.
+        * coronal (``y = centre y``): columns to patient left (+x), rows to inferior (-z); superior at the top.
+        * sagittal (``x = centre x``): columns to posterior (+y), rows to inferior (-z); superior at the top,
+          anterior on the left.
+
+        Pixel ``(row, column)`` of a plane is the point ``centre + spacing * ((column - pixels // 2) * u +
+        (row - pixels // 2) * v)`` with ``u, v`` its :data:`PLANE_AXES`, ``spacing = extent / pixels``; shown with
+        ``imshow`` (row 0 at the top) it reads in the radiological convention.
+
+    Raises:
+        InputError: ``image`` is not 3-D, ``centre`` is not a 3-D point, or ``extent``/``pixels`` is not positive.
+    """
+    if image.GetDimension() != 3:
+        raise InputError(f"image is {image.GetDimension()}-D (size {image.GetSize()}); orthogonal planes need a "
+                         "3-D volume")
+    if len(centre) != 3:
+        raise InputError(f"centre {tuple(centre)} is not an (x, y, z) point in mm")
+    if not extent > 0 or pixels < 1:
+        raise InputError(f"extent {extent} mm and pixels {pixels} must both be positive")
+    spacing = extent / pixels
+    point = np.asarray(centre, dtype=float)
+    planes = []
+    for column_axis, row_axis in PLANE_AXES.values():
+        u, v = np.asarray(column_axis), np.asarray(row_axis)
+        reference = sitk.Image(pixels, pixels, 1, sitk.sitkFloat32)
+        reference.SetSpacing((spacing, spacing, spacing))
+        reference.SetDirection(tuple(np.column_stack([u, v, np.cross(u, v)]).ravel()))
+        reference.SetOrigin(tuple(point - grid_centre(pixels) * spacing * (u + v)))
+        plane = sitk.Resample(image, reference, transform if transform is not None else sitk.Transform(),
+                              sitk.sitkLinear, default, sitk.sitkFloat32)
+        planes.append(sitk.GetArrayFromImage(plane)[0])
+    return planes
+
+
+def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform,
+                    path: str | os.PathLike[str], *, title: str = "", centre: Sequence[float] | None = None,
+                    extent: float | None = None) -> None:
+    """Write a PNG that shows at a glance whether a registration worked.
+
+    Three rows by three columns (axial, coronal, sagittal, see :func:`orthogonal_planes`): the fixed image in
+    greyscale with the moving image's contours, before registration (moving as stored) and after (moving through
+    ``fixed_to_moving``), then a checkerboard of the fixed and the registered moving image.
+
+    Args:
+        fixed: 3-D fixed image.
+        moving: 3-D moving image.
+        fixed_to_moving: the registration result, mapping fixed LPS points to moving ones.
+        path: ``.png`` file, written atomically.
+        title: figure title; the centre and field of view are appended on a second line.
+        centre: LPS point in mm the planes pass through; default the centre of the fixed image's foreground
+            bounding box.
+        extent: field of view in mm; default the fixed image's largest physical side.
+
+    Raises:
+        InputError: ``path`` does not end in ``.png``, or an image is not 3-D.
+
+    Notes:
+        Greyscale windows are each image's 1st..99th percentiles. Contours are drawn at the moving image's two
+        multi-level Otsu thresholds (typically the outline of the object and a boundary inside it).
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise InputError(f"overview path {path} must end in .png")
+    for name, image in (("fixed", fixed), ("moving", moving)):
+        if image.GetDimension() != 3:
+            raise InputError(f"{name} image is {image.GetDimension()}-D (size {image.GetSize()}); the overview "
+                             "needs 3-D volumes")
+    from matplotlib.figure import Figure  # imported here: matplotlib takes a noticeable time to import
+
+    from dpcn_med.io import atomic_output
+
+    fixed_small, moving_small = _subsampled(fixed), _subsampled(moving)
+    if centre is None:
+        centre = foreground_box(fixed_small)[0]
+    if extent is None:
+        extent = max(size * spacing for size, spacing in zip(fixed.GetSize(), fixed.GetSpacing()))
+    fixed_window = _window(fixed_small)
+    moving_window = _window(moving_small)
+    levels = _contour_levels(moving_small)
+
+    # NaN outside each image's field of view: no contour runs along its edge, and it shows black in every panel.
+    fixed_planes = orthogonal_planes(fixed, centre, extent=extent, pixels=OVERVIEW_PIXELS, default=math.nan)
+    before = orthogonal_planes(moving, centre, extent=extent, pixels=OVERVIEW_PIXELS, default=math.nan)
+    after = orthogonal_planes(moving, centre, extent=extent, pixels=OVERVIEW_PIXELS, transform=fixed_to_moving,
+                              default=math.nan)
+
+    columns, rows = len(PLANE_AXES), len(OVERVIEW_ROWS)
+    width_in = 10.0
+    figure = Figure(figsize=(width_in, width_in * (rows + 0.35) / (columns + 0.15)), facecolor="black")
+    figure.subplots_adjust(left=0.05, right=0.995, bottom=0.005, top=1 - 0.35 / (rows + 0.35), wspace=0.03,
+                           hspace=0.03)
+    axes = figure.subplots(rows, columns, squeeze=False)
+    for column, plane_name in enumerate(PLANE_AXES):
+        fixed_grey = _normalised(fixed_planes[column], fixed_window)
+        for row, moving_plane in enumerate((before[column], after[column])):
+            axes[row, column].imshow(fixed_grey, cmap="gray", vmin=0.0, vmax=1.0, interpolation="nearest")
+            _draw_contours(axes[row, column], moving_plane, levels)
+        axes[2, column].imshow(_checkerboard(fixed_grey, _normalised(after[column], moving_window)), cmap="gray",
+                               vmin=0.0, vmax=1.0, interpolation="nearest")
+        axes[0, column].set_title(plane_name, color="white", fontsize=12)
+        for row in range(rows):
+            _label_edges(axes[row, column], PLANE_EDGE_LABELS[plane_name])
+    for row, label in enumerate(OVERVIEW_ROWS):
+        axes[row, 0].set_ylabel(label, color="white", fontsize=12)
+    for ax in axes.flat:
+        ax.set_xticks([])
+        ax.set_yticks([])
+        for spine in ax.spines.values():
+            spine.set_color("#555555")
+    centre_text = ", ".join(f"{c:.1f}" for c in centre)
+    subtitle = f"planes through ({centre_text}) mm LPS, field of view {extent:.0f} mm"
+    figure.suptitle(f"{title}\n{subtitle}" if title else subtitle, color="white", fontsize=13)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, format="png", dpi=OVERVIEW_WIDTH_PX / width_in, facecolor="black")
+
+
+def _subsampled(image: sitk.Image) -> sitk.Image:
+    """``image`` keeping every n-th voxel so that no side exceeds :data:`STATISTICS_SIDE` voxels."""
+    factors = [max(1, math.ceil(size / STATISTICS_SIDE)) for size in image.GetSize()]
+    return sitk.Shrink(image, factors) if max(factors) > 1 else image
+
+
+def _window(image: sitk.Image) -> tuple[float, float]:
+    """Display window: the :data:`WINDOW_PERCENTILES` of the image's intensities, never empty."""
+    low, high = np.percentile(sitk.GetArrayViewFromImage(image), WINDOW_PERCENTILES)
+    return float(low), float(max(high, low + 1e-6))
+
+
+def _normalised(plane: np.ndarray, window: tuple[float, float]) -> np.ndarray:
+    """``plane`` mapped from ``window`` to ``[0, 1]``, clipped, NaN (outside the image) to 0."""
+    low, high = window
+    return np.nan_to_num(np.clip((plane - low) / (high - low), 0.0, 1.0), nan=0.0)
+
+
+def _contour_levels(image: sitk.Image) -> list[float]:
+    """The multi-level Otsu thresholds of ``image`` (one per contour colour), strictly increasing."""
+    otsu = sitk.OtsuMultipleThresholdsImageFilter()
+    otsu.SetNumberOfThresholds(len(CONTOUR_COLOURS))
+    otsu.Execute(image)
+    return sorted(set(otsu.GetThresholds()))  # a two-valued image gives repeated thresholds
+
+
+def _draw_contours(ax: Axes, plane: np.ndarray, levels: Sequence[float]) -> None:
+    """Contours of ``plane`` at ``levels`` in :data:`CONTOUR_COLOURS`, skipping levels the plane never crosses."""
+    finite = plane[np.isfinite(plane)]
+    if finite.size == 0:
+        return
+    low, high = float(finite.min()), float(finite.max())
+    # matplotlib warns and draws a spurious level when none lies inside the data range.
+    inside = [(level, colour) for level, colour in zip(levels, CONTOUR_COLOURS) if low < level < high]
+    if inside:
+        ax.contour(plane, levels=[level for level, _ in inside], colors=[colour for _, colour in inside],
+                   linewidths=0.9)
+
+
+def _checkerboard(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """``first`` and ``second`` (same shape) alternating in :data:`CHECKER_SQUARES` squares per side."""
+    rows, columns = first.shape
+    square = max(1, max(rows, columns) // CHECKER_SQUARES)
+    parity = (np.arange(rows)[:, None] // square + np.arange(columns)[None, :] // square) % 2
+    return np.where(parity == 0, first, second)
+
+
+def _label_edges(ax: Axes, labels: tuple[str, str, str, str]) -> None:
+    """Patient directions at the (left, right, top, bottom) edges of a panel."""
+    from matplotlib import patheffects
+
+    # A dark outline keeps the letters readable on white checkerboard squares.
+    style = {"color": "#9fd0ff", "fontsize": 9, "transform": ax.transAxes,
+             "path_effects": [patheffects.withStroke(linewidth=2, foreground="black")]}
+    left, right, top, bottom = labels
+    ax.text(0.01, 0.5, left, ha="left", va="center", **style)
+    ax.text(0.99, 0.5, right, ha="right", va="center", **style)
+    ax.text(0.5, 0.99, top, ha="center", va="top", **style)
+    ax.text(0.5, 0.01, bottom, ha="center", va="bottom", **style)

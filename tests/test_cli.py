@@ -1,0 +1,268 @@
+"""`dpcn-med`: outputs, exit codes, bad inputs (message, code 2, nothing written), batches and interoperability."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from dpcn_med import __version__
+from dpcn_med.cli import OUTPUT_NAMES, main
+from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
+from dpcn_med.preprocess import foreground_box
+from tests.test_register import mni_2mm
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory) -> tuple[Path, Path, sitk.Transform]:
+    """The 2 mm MNI template and a copy of it moved by a known large similarity transform, as files."""
+    folder = tmp_path_factory.mktemp("pair")
+    fixed = mni_2mm()
+    truth = random_similarity(np.random.default_rng(11), foreground_box(fixed)[0], max_shift_mm=40.0)
+    sitk.WriteImage(fixed, str(folder / "fixed.nii.gz"))
+    sitk.WriteImage(moved_copy(fixed, truth), str(folder / "moving.nrrd"))
+    return folder / "fixed.nii.gz", folder / "moving.nrrd", truth
+
+
+@pytest.fixture(scope="module")
+def registered(pair, tmp_path_factory) -> tuple[Path, int]:
+    output = tmp_path_factory.mktemp("run") / "out"
+    code = main(["register", str(pair[0]), str(pair[1]), "-o", str(output), "--quiet"])
+    return output, code
+
+
+class TestRegister:
+    def test_writes_every_output_and_exits_0(self, registered):
+        output, code = registered
+        assert code == 0
+        assert sorted(p.name for p in output.iterdir()) == sorted(OUTPUT_NAMES)
+        assert not list(output.parent.glob(".dpcn-med-*"))  # no staging folder left behind
+
+    def test_transform_files_recover_the_truth(self, registered, pair):
+        output, _ = registered
+        corners = foreground_corners(mni_2mm())
+        for name in ("transform.tfm", "transform.h5"):
+            transform = sitk.ReadTransform(str(output / name))
+            assert target_registration_error(transform, pair[2], corners) < 1.0
+        inverse = sitk.ReadTransform(str(output / "inverse.tfm"))
+        point = [5.0, 10.0, -20.0]
+        np.testing.assert_allclose(inverse.TransformPoint(pair[2].TransformPoint(point)), point, atol=1.0)
+
+    def test_report(self, registered, pair):
+        report = json.loads((registered[0] / "report.json").read_text())
+        assert report["inputs"]["fixed"]["path"] == str(pair[0])
+        assert report["status"] == "ok" and report["confidence"] >= report["min_confidence"]
+        assert report["dpc"]["type"] == report["final"]["type"] == "VersorRigid3DTransform"
+        assert report["mattes_mutual_information"]["refined"] <= report["mattes_mutual_information"]["dpc"]
+        assert report["version"] == __version__
+
+    def test_resampled_volume_on_the_fixed_grid(self, registered):
+        resampled = sitk.ReadImage(str(registered[0] / "moving_resampled.nii.gz"))
+        fixed = mni_2mm()
+        assert resampled.GetSize() == fixed.GetSize()
+        np.testing.assert_allclose(resampled.GetOrigin(), fixed.GetOrigin(), atol=1e-4)
+        a, b = sitk.GetArrayFromImage(resampled).ravel(), sitk.GetArrayFromImage(fixed).ravel()
+        assert np.corrcoef(a, b)[0, 1] > 0.99
+
+    def test_overview_is_a_png(self, registered):
+        assert (registered[0] / "overview.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    @pytest.mark.parametrize("name", ["transform.tfm", "transform.h5"])
+    def test_itk_reads_the_same_transform(self, registered, pair, name):
+        itk = pytest.importorskip("itk", reason="the itk package (the test extra) is not installed")
+        path = str(registered[0] / name)
+        transform = itk.transformread(path)[0]
+        fixed = itk.imread(str(pair[0]), itk.F)
+        moving = itk.imread(str(pair[1]), itk.F)
+        resampled = itk.resample_image_filter(moving, transform=transform, use_reference_image=True,
+                                              reference_image=fixed)
+        expected = sitk.Resample(sitk.Cast(sitk.ReadImage(str(pair[1])), sitk.sitkFloat32),
+                                 sitk.ReadImage(str(pair[0])), sitk.ReadTransform(path), sitk.sitkLinear, 0.0)
+        np.testing.assert_allclose(itk.array_from_image(resampled), sitk.GetArrayFromImage(expected), atol=1e-3)
+
+    def test_python_dash_m_and_version(self):
+        done = subprocess.run([sys.executable, "-m", "dpcn_med", "--version"], capture_output=True, text=True,
+                              check=False)
+        assert done.returncode == 0 and done.stdout.strip() == f"dpcn-med {__version__}"
+
+
+def _constant(path: Path) -> None:
+    sitk.WriteImage(sitk.Image([20, 20, 20], sitk.sitkInt16) + 7, str(path))
+
+
+def _nan(path: Path) -> None:
+    array = np.random.default_rng(0).random((20, 20, 20)).astype(np.float32)
+    array[3, 4, 5] = np.nan
+    sitk.WriteImage(sitk.GetImageFromArray(array), str(path))
+
+
+def _two_d(path: Path) -> None:
+    sitk.WriteImage(sitk.GetImageFromArray(np.random.default_rng(0).random((30, 30)).astype(np.float32)), str(path))
+
+
+def _four_d(path: Path) -> None:
+    volumes = [sitk.GetImageFromArray(np.random.default_rng(i).random((10, 10, 10)).astype(np.float32)) for i in (0, 1)]
+    sitk.WriteImage(sitk.JoinSeries(volumes), str(path))
+
+
+def _spacing(path: Path) -> None:
+    image = sitk.GetImageFromArray(np.random.default_rng(0).random((20, 20, 20)).astype(np.float32))
+    image.SetSpacing((1.0, 1.0, 1e-5))
+    sitk.WriteImage(image, str(path))
+
+
+def _truncated(path: Path) -> None:
+    sitk.WriteImage(mni_2mm(), str(path))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _garbage(path: Path) -> None:
+    path.write_bytes(b"this is not an image" * 100)
+
+
+def _huge(path: Path) -> None:
+    # A header-only MetaImage claiming 100000^2 x 1000 voxels: refused before any pixel is read.
+    path.write_text("ObjectType = Image\nNDims = 3\nDimSize = 100000 100000 1000\nElementType = MET_FLOAT\n"
+                    "ElementSpacing = 1 1 1\nElementDataFile = huge.raw\n")
+
+
+BAD_INPUTS = {
+    "missing": (None, "moving.nii.gz", "not found|does not exist|no such"),
+    "garbage": (_garbage, "moving.nii.gz", "not a readable|cannot read|unreadable|could not"),
+    "truncated": (_truncated, "moving.nii.gz", "truncated"),
+    "two_d": (_two_d, "moving.nii.gz", "2-D"),
+    "four_d": (_four_d, "moving.nii.gz", "4-D"),
+    "constant": (_constant, "moving.nii.gz", "constant|all voxels"),
+    "nan": (_nan, "moving.nii.gz", "NaN"),
+    "spacing": (_spacing, "moving.nii.gz", "spacing"),
+    "too_large": (_huge, "moving.mhd", "memory"),
+}
+
+
+class TestBadInput:
+    @pytest.mark.parametrize("case", list(BAD_INPUTS))
+    def test_exit_2_one_line_nothing_written(self, case, pair, tmp_path, capsys):
+        make, name, message = BAD_INPUTS[case]
+        bad = tmp_path / name
+        if make is not None:
+            make(bad)
+        output = tmp_path / "out"
+        code = main(["register", str(pair[0]), str(bad), "-o", str(output)])
+        err = capsys.readouterr().err.strip()
+        assert code == 2
+        assert len(err.splitlines()) == 1 and str(bad) in err
+        assert re.search(message, err, flags=re.IGNORECASE), err
+        assert not output.exists() and not list(tmp_path.glob(".dpcn-med-*"))
+
+    def test_several_dicom_series_are_listed(self, pair, tmp_path, capsys):
+        folder = tmp_path / "dicom"
+        folder.mkdir()
+        for series, offset in (("1.2.826.0.1.3680043.2.1125.1", 0), ("1.2.826.0.1.3680043.2.1125.2", 100)):
+            _write_dicom_series(folder, series, offset)
+        code = main(["register", str(pair[0]), str(folder), "-o", str(tmp_path / "out")])
+        err = capsys.readouterr().err
+        assert code == 2 and "1.2.826.0.1.3680043.2.1125.1" in err and "1.2.826.0.1.3680043.2.1125.2" in err
+        assert "@" in err and not (tmp_path / "out").exists()
+
+    def test_output_over_an_input_is_refused(self, pair, tmp_path, capsys):
+        folder = tmp_path / "case"
+        folder.mkdir()
+        moving = folder / "report.json"  # an input named like an output, inside the output folder
+        moving.write_bytes(pair[1].read_bytes())
+        before = moving.read_bytes()
+        code = main(["register", str(pair[0]), str(moving), "-o", str(folder)])
+        assert code == 2 and "never overwritten" in capsys.readouterr().err
+        assert moving.read_bytes() == before
+
+    def test_bad_mask(self, pair, tmp_path, capsys):
+        mask = tmp_path / "mask.nii.gz"
+        sitk.WriteImage(sitk.Image([5, 5, 5], sitk.sitkUInt8) + 1, str(mask))
+        code = main(["register", str(pair[0]), str(pair[1]), "--fixed-mask", str(mask), "-o", str(tmp_path / "o")])
+        err = capsys.readouterr().err
+        assert code == 2 and str(mask) in err and not (tmp_path / "o").exists()
+
+    def test_learned_model_option(self, pair, tmp_path, capsys):
+        code = main(["register", str(pair[0]), str(pair[1]), "--model", "default", "-o", str(tmp_path / "o")])
+        assert code == 2 and "learning-free" in capsys.readouterr().err
+
+
+def _write_dicom_series(folder: Path, series_uid: str, offset: int) -> None:
+    array = (np.random.default_rng(offset).random((4, 16, 16)) * 1000).astype(np.int16)
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    for index in range(array.shape[0]):
+        image = sitk.GetImageFromArray(array[index])
+        for tag, value in (("0020|000e", series_uid), ("0020|000d", "1.2.826.0.1.3680043.2.1125.9"),
+                           ("0008|0060", "CT"), ("0008|103e", f"series {offset}"),
+                           ("0020|0032", f"0\\0\\{index * 2.0}"), ("0020|0013", str(index + 1)),
+                           ("0008|0018", f"{series_uid}.{index + 1}"), ("0028|0030", "1\\1")):
+            image.SetMetaData(tag, value)
+        writer.SetFileName(str(folder / f"{offset + index:04d}.dcm"))
+        writer.Execute(image)
+
+
+class TestLowConfidence:
+    def test_unrelated_volumes_exit_3_with_outputs(self, pair, tmp_path, capsys):
+        rng = np.random.default_rng(0)
+        noise = sitk.GetImageFromArray((rng.random((40, 48, 36)) * 100).astype(np.float32))
+        noise.SetSpacing((3.0, 3.0, 3.0))
+        sitk.WriteImage(noise, str(tmp_path / "noise.nii.gz"))
+        output = tmp_path / "out"
+        code = main(["register", str(pair[0]), str(tmp_path / "noise.nii.gz"), "-o", str(output), "--no-refine"])
+        assert code == 3 and "below" in capsys.readouterr().err
+        report = json.loads((output / "report.json").read_text())
+        assert report["status"] == "low confidence" and report["confidence"] < report["min_confidence"]
+
+
+class TestFailureLeavesNothing:
+    def test_internal_error_while_writing(self, pair, tmp_path, monkeypatch, capsys):
+        import dpcn_med.report
+
+        def broken(*args, **kwargs):
+            raise RuntimeError("disk on fire")
+
+        monkeypatch.setattr(dpcn_med.report, "overview_figure", broken)
+        output = tmp_path / "out"
+        code = main(["register", str(pair[0]), str(pair[1]), "-o", str(output), "--no-refine"])
+        assert code == 1 and "disk on fire" in capsys.readouterr().err
+        assert not output.exists() and not list(tmp_path.glob(".dpcn-med-*"))
+
+
+class TestBatch:
+    def test_resumable_with_summary(self, pair, tmp_path, capsys):
+        table = tmp_path / "pairs.csv"
+        table.write_text(f"id,fixed,moving\ngood,{pair[0]},{pair[1]}\nbroken,{pair[0]},missing.nii.gz\n")
+        output = tmp_path / "cohort"
+        assert main(["register-batch", str(table), "-o", str(output), "--no-refine"]) == 2
+        rows = list(csv.DictReader((output / "summary.csv").open()))
+        assert [r["status"] for r in rows] == ["ok", "bad input"] and "missing.nii.gz" in rows[1]["message"]
+        assert (output / "good" / "report.json").is_file() and not (output / "broken").exists()
+        capsys.readouterr()
+        assert main(["register-batch", str(table), "-o", str(output), "--no-refine"]) == 2
+        rows = list(csv.DictReader((output / "summary.csv").open()))
+        assert rows[0]["status"] == "done earlier"
+
+    def test_bad_pairs_file(self, tmp_path, capsys):
+        table = tmp_path / "pairs.csv"
+        table.write_text("a,b\n1,2\n")
+        assert main(["register-batch", str(table), "-o", str(tmp_path / "o")]) == 2
+        assert "fixed,moving" in capsys.readouterr().err
+
+
+class TestInfo:
+    def test_prints_geometry_and_range(self, pair, capsys):
+        assert main(["info", str(pair[0])]) == 0
+        out = capsys.readouterr().out
+        assert re.search(r"spacing\s+\(2\.0, 2\.0, 2\.0\)", out) and "orientation" in out, out
+
+    def test_missing_file(self, tmp_path, capsys):
+        assert main(["info", str(tmp_path / "nope.nii")]) == 2
+        assert "nope.nii" in capsys.readouterr().err

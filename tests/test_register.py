@@ -1,0 +1,133 @@
+"""The registration API: round trips with known physical transforms, options, masks and errors."""
+
+from __future__ import annotations
+
+import functools
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from dpcn_med.errors import InputError
+from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
+from dpcn_med.geometry import homogeneous_matrix
+from dpcn_med.preprocess import foreground_box
+from dpcn_med.register import RegistrationResult, register, resolve_device
+from dpcn_med.samples import mni152_t1
+from tests.conftest import shared_path
+
+
+@functools.lru_cache(maxsize=1)
+def mni_2mm() -> sitk.Image:
+    """The MNI152 T1 averaged down to 2 mm: the same anatomy at an eighth of the voxels, for quick tests."""
+    return sitk.BinShrink(mni152_t1(), [2, 2, 2])
+
+
+def _round_trip(fixed: sitk.Image, mode: str, seed: int, **options) -> tuple[RegistrationResult, sitk.Transform,
+                                                                          np.ndarray]:
+    rng = np.random.default_rng(seed)
+    truth = random_similarity(rng, foreground_box(fixed)[0], max_shift_mm=40.0,
+                              scale_range=(0.85, 1.15) if mode == "similarity" else (1.0, 1.0))
+    return register(fixed, moved_copy(fixed, truth), mode=mode, **options), truth, foreground_corners(fixed)
+
+
+class TestRoundTrip:
+    @pytest.mark.parametrize(("mode", "seed"), [("rigid", 0), ("similarity", 1)])
+    def test_built_in_sample(self, mode, seed):
+        result, truth, corners = _round_trip(mni_2mm(), mode, seed)
+        assert target_registration_error(result.dpc_transform, truth, corners) < 2 * result.fixed_grid.spacing
+        assert target_registration_error(result.fixed_to_moving, truth, corners) < 1.0
+        assert result.refined and result.metric["refined"] <= result.metric["dpc"] < result.metric["stored"]
+        expected = "VersorRigid3DTransform" if mode == "rigid" else "Similarity3DTransform"
+        assert result.fixed_to_moving.GetName() == expected
+        np.testing.assert_allclose(result.fixed_to_moving.GetFixedParameters(), result.fixed_grid.centre)
+
+    @pytest.mark.shared_data
+    @pytest.mark.parametrize("name", ["rire/training_001_mr_T1.mha", "mridir/mridir_ct_1p5mm.nii.gz"])
+    def test_real_volumes(self, name):
+        fixed = sitk.ReadImage(str(shared_path(name)))
+        result, truth, corners = _round_trip(fixed, "similarity", 7)
+        assert target_registration_error(result.dpc_transform, truth, corners) < 2 * result.fixed_grid.spacing
+        assert target_registration_error(result.fixed_to_moving, truth, corners) < 1.0
+
+    def test_paths_and_images_give_the_same_result(self, tmp_path):
+        fixed = mni_2mm()
+        moving = moved_copy(fixed, random_similarity(np.random.default_rng(2), foreground_box(fixed)[0]))
+        sitk.WriteImage(fixed, str(tmp_path / "fixed.nii.gz"))
+        sitk.WriteImage(moving, str(tmp_path / "moving.nrrd"))
+        from_images = register(fixed, moving, refine=False)
+        from_paths = register(tmp_path / "fixed.nii.gz", str(tmp_path / "moving.nrrd"), refine=False)
+        np.testing.assert_allclose(homogeneous_matrix(from_paths.dpc_transform),
+                                   homogeneous_matrix(from_images.dpc_transform), atol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def result() -> RegistrationResult:
+    return _round_trip(mni_2mm(), "rigid", 3, resample=True)[0]
+
+
+class TestResult:
+    def test_inverse(self, result):
+        point = [10.0, -20.0, 15.0]
+        back = result.moving_to_fixed.TransformPoint(result.fixed_to_moving.TransformPoint(point))
+        np.testing.assert_allclose(back, point, atol=1e-6)
+
+    def test_resampled_on_the_fixed_grid(self, result):
+        resampled, fixed = result.resampled, result.fixed_image
+        assert resampled.GetSize() == fixed.GetSize() and resampled.GetOrigin() == fixed.GetOrigin()
+        assert resampled.GetPixelID() == result.moving_image.GetPixelID()
+        a, b = sitk.GetArrayFromImage(resampled), sitk.GetArrayFromImage(fixed)
+        assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.99
+
+    def test_summary_is_json(self, result):
+        summary = json.loads(json.dumps(result.to_dict()))
+        assert summary["mode"] == "rigid" and summary["final"]["scale"] == pytest.approx(1.0)
+        assert set(summary["mattes_mutual_information"]) == {"stored", "dpc", "refined"}
+        assert summary["timings_s"]["solve"] > 0 and any(k.startswith("solver.") for k in summary["timings_s"])
+
+    def test_no_refinement_keeps_the_dpc_estimate(self):
+        result = _round_trip(mni_2mm(), "rigid", 4, refine=False)[0]
+        assert not result.refined and result.metric["refined"] is None
+        assert result.fixed_to_moving is result.dpc_transform
+
+
+class TestMasks:
+    def test_fixed_mask_restricts_what_is_registered(self):
+        fixed = mni_2mm()
+        mask = sitk.Image(fixed.GetSize(), sitk.sitkUInt8)
+        mask.CopyInformation(fixed)
+        size = fixed.GetSize()
+        mask[:, :, size[2] // 2:] = 1  # the upper half of the head only
+        truth = random_similarity(np.random.default_rng(5), foreground_box(fixed)[0], max_shift_mm=20.0)
+        result = register(fixed, moved_copy(fixed, truth), fixed_mask=mask)
+        assert result.fixed_grid.centre[2] > foreground_box(fixed)[0][2]  # centred on the masked half
+        corners = foreground_corners(fixed, mask)
+        assert target_registration_error(result.fixed_to_moving, truth, corners) < 1.0
+
+
+class TestErrors:
+    def test_unknown_mode(self):
+        with pytest.raises(InputError, match="mode 'affine' is not supported"):
+            register(mni_2mm(), mni_2mm(), mode="affine")
+
+    def test_learned_model_not_available(self):
+        with pytest.raises(InputError, match="learned feature extractors are not part of dpcn_med yet"):
+            register(mni_2mm(), mni_2mm(), model="default")
+
+    def test_unknown_modality(self):
+        with pytest.raises(InputError, match="fixed_modality 'pet'"):
+            register(mni_2mm(), mni_2mm(), fixed_modality="pet")
+
+    def test_two_dimensional_image(self):
+        with pytest.raises(InputError, match="expected a 3-D scalar volume"):
+            register(sitk.Image([8, 8], sitk.sitkFloat32), mni_2mm())
+
+    @pytest.mark.parametrize(("device", "message"), [("tpu", "not valid|not supported"), ("cuda:0", "no CUDA GPU")])
+    def test_devices(self, device, message):
+        import torch
+
+        if device.startswith("cuda") and torch.cuda.is_available():
+            pytest.skip("a CUDA GPU is present")
+        with pytest.raises(InputError, match=message):
+            resolve_device(device)
