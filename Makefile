@@ -15,7 +15,7 @@ $(VENV)/.installed: pyproject.toml Makefile
 	touch $@
 
 demo: $(VENV)/.installed
-	$(PY) -m dpcn_med.demo
+	$(PY) -m dpcn_med.demo --output demo_output
 
 test: $(VENV)/.installed
 	$(PY) -m pytest

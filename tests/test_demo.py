@@ -1,16 +1,19 @@
-"""`make demo` end to end, on the built-in sample (no ../shared needed)."""
+"""`make demo` end to end, on the built-in CT / MR pair (no ../shared needed)."""
 
 from __future__ import annotations
 
 import re
 
+from dpcn_med.cli import OUTPUT_NAMES
 from dpcn_med.demo import main
 
 
-def test_demo_recovers_the_pose_and_reports_it(capsys):
-    assert main([]) == 0
+def test_demo_registers_the_built_in_pair_and_says_where(tmp_path, capsys):
+    assert main(["--output", str(tmp_path)]) == 0
     output = capsys.readouterr().out
-    errors = re.search(r"rotation error ([\d.]+)°, scale error ([\d.]+)%, translation error ([\d.]+) voxels", output)
-    assert errors, output
-    rotation, scale, translation = (float(value) for value in errors.groups())
-    assert rotation < 5.0 and scale < 3.0 and translation < 2.0
+    error = re.search(r"target registration error against the truth: ([\d.]+) mm after refinement", output)
+    assert error, output
+    assert float(error.group(1)) < 1.0
+    assert f"results in {tmp_path / 'registration'}/" in output
+    assert sorted(p.name for p in (tmp_path / "registration").iterdir()) == sorted(OUTPUT_NAMES)
+    assert {p.name for p in (tmp_path / "inputs").iterdir()} == {"mr_t1.nii.gz", "ct_moved.nii.gz", "truth.tfm"}
