@@ -10,7 +10,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 import SimpleITK as sitk
 import torch
-from monai.transforms import ScaleIntensityRange
 from torch import Tensor
 
 from dpcn_med.errors import InputError
@@ -118,6 +117,8 @@ def normalize_modality(image: sitk.Image, modality: str, mask: sitk.Image, confi
         raise InputError(f"modality {modality!r} is not supported; use one of {', '.join(MODALITIES)}")
     if (detect_modality(image, config) if modality == "auto" else modality) != "ct":
         return normalize_intensity(image, config.percentiles, mask)
+    from monai.transforms import ScaleIntensityRange  # imported here: MONAI takes seconds to import, CT needs it
+
     low, high = config.ct_window
     window = ScaleIntensityRange(a_min=low, a_max=high, b_min=0.0, b_max=1.0, clip=True)
     scaled = np.asarray(window(sitk.GetArrayFromImage(image).astype(np.float32)), dtype=np.float32)

@@ -1,4 +1,5 @@
-"""Known poses for synthetic pairs with exact ground truth (tests, benchmarks and, later, training data)."""
+"""Ground truth for synthetic pairs: known poses, and CT-like volumes simulated from MR (tests, benchmarks, the demo
+and, later, training data)."""
 
 from __future__ import annotations
 

@@ -87,6 +87,18 @@ class TestRegister:
                                  sitk.ReadImage(str(pair[0])), sitk.ReadTransform(path), sitk.sitkLinear, 0.0)
         np.testing.assert_allclose(itk.array_from_image(resampled), sitk.GetArrayFromImage(expected), atol=1e-3)
 
+    def test_masks_are_used_and_reported(self, pair, tmp_path):
+        from dpcn_med.preprocess import foreground_mask
+
+        mask = tmp_path / "fixed_mask.nii.gz"
+        sitk.WriteImage(foreground_mask(sitk.ReadImage(str(pair[0]))), str(mask))
+        code = main(["register", str(pair[0]), str(pair[1]), "--fixed-mask", str(mask), "-o", str(tmp_path / "o"),
+                     "-q"])
+        report = json.loads((tmp_path / "o" / "report.json").read_text())
+        assert code == 0 and report["inputs"]["fixed_mask"] == str(mask)
+        transform = sitk.ReadTransform(str(tmp_path / "o" / "transform.tfm"))
+        assert target_registration_error(transform, pair[2], foreground_corners(mni_2mm())) < 1.0
+
     def test_python_dash_m_and_version(self):
         done = subprocess.run([sys.executable, "-m", "dpcn_med", "--version"], capture_output=True, text=True,
                               check=False)

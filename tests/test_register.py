@@ -106,6 +106,26 @@ class TestMasks:
         assert target_registration_error(result.fixed_to_moving, truth, corners) < 1.0
 
 
+class TestSurfaceMesh:
+    def test_a_closed_surface_registers_to_its_volume(self, tmp_path):
+        """The head's surface (marching cubes of its foreground), moved by a known transform and saved as STL."""
+        pv = pytest.importorskip("pyvista")
+        from dpcn_med.preprocess import foreground_mask
+
+        fixed = mni_2mm()
+        mask = sitk.ConstantPad(foreground_mask(fixed), [1, 1, 1], [1, 1, 1], 0)  # padded: the surface closes
+        grid = pv.ImageData(dimensions=mask.GetSize())
+        grid.point_data["mask"] = sitk.GetArrayFromImage(mask).astype(np.float32).ravel()
+        surface = grid.contour([0.5], scalars="mask")
+        index = np.asarray(surface.points, dtype=np.float64)  # continuous (x, y, z) indices of the padded mask
+        physical = np.array([mask.TransformContinuousIndexToPhysicalPoint(p) for p in index.tolist()])
+        truth = random_similarity(np.random.default_rng(8), foreground_box(fixed)[0], max_shift_mm=30.0)
+        surface.points = np.array([truth.TransformPoint(p) for p in physical.tolist()])
+        surface.save(str(tmp_path / "head.stl"))
+        result = register(fixed, tmp_path / "head.stl")
+        assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 1.0
+
+
 class TestErrors:
     def test_unknown_mode(self):
         with pytest.raises(InputError, match="mode 'affine' is not supported"):

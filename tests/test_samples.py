@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from dpcn_med.samples import mni152_masks, mni152_pseudo_ct, mni152_t1
+from dpcn_med.samples import mni152_head_t1, mni152_masks, mni152_pseudo_ct, mni152_t1
 
 
 @pytest.fixture(scope="module")
@@ -85,3 +85,16 @@ class TestMni152PseudoCT:
             return float(np.median(values[masks["bone"] > 0])) - float(np.median(values[masks["brain"] > 0]))
 
         assert contrast(t1) < 0 < contrast(ct)
+
+
+class TestMni152HeadT1:
+    def test_t1_contrast_of_the_modelled_layers(self, t1, masks):
+        head = mni152_head_t1(seed=0)
+        assert head.GetSize() == t1.GetSize() and head.GetOrigin() == t1.GetOrigin()
+        array = sitk.GetArrayFromImage(head)
+        brain, bone, inside = (masks[k] > 0 for k in ("brain", "bone", "head"))
+        scalp = inside & ~bone & ~brain & (sitk.GetArrayFromImage(t1) == 0)
+        # the template's brain is kept as it is; bone is dark, the outer scalp (fat) bright, air stays 0
+        np.testing.assert_array_equal(array[brain], sitk.GetArrayFromImage(t1)[brain])
+        assert np.median(array[bone]) < 0.2 * np.median(array[brain]) < np.median(array[scalp])
+        assert array[~inside].max() == 0.0
