@@ -52,7 +52,7 @@ class Refinement:
     """
 
     shrink_factors: tuple[int, ...] = (4, 2, 1)
-    smoothing_mm: tuple[float, ...] = (2.0, 1.0, 0.0)
+    smoothing_mm: tuple[float, ...] = (4.0, 2.0, 0.0)
     samples: int = 30_000
     histogram_bins: int = 32
     iterations: int = 100

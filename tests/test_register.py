@@ -123,7 +123,9 @@ class TestSurfaceMesh:
         surface.points = np.array([truth.TransformPoint(p) for p in physical.tolist()])
         surface.save(str(tmp_path / "head.stl"))
         result = register(fixed, tmp_path / "head.stl")
-        assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 1.0
+        # Within one voxel of the 2 mm image: the surface is a marching-cubes model of its binary mask, voxelised
+        # again at 1 mm, not the image itself.
+        assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 2.0
 
 
 class TestErrors:
