@@ -28,7 +28,7 @@ from dpcn_med.geometry import (
 )
 from dpcn_med.preprocess import MODALITIES, Preprocessing, pair_grids, prepare, resample_to_grid, to_tensor
 from dpcn_med.solver import solve
-from dpcn_med.solver.validation import check_mode
+from dpcn_med.solver.validation import MAX_BANDWIDTH, check_bandwidth, check_mode
 
 ImageLike = str | os.PathLike | sitk.Image
 Progress = Callable[[str, float], None]
@@ -52,7 +52,7 @@ class Refinement:
     """
 
     shrink_factors: tuple[int, ...] = (4, 2, 1)
-    smoothing_mm: tuple[float, ...] = (4.0, 2.0, 0.0)
+    smoothing_mm: tuple[float, ...] = (2.0, 1.0, 0.0)
     samples: int = 30_000
     histogram_bins: int = 32
     iterations: int = 100
@@ -212,6 +212,7 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
     refinement = refinement or Refinement()
     mode = check_mode(mode)
     check_model(model)
+    check_bandwidth(bandwidth, 2 * MAX_BANDWIDTH)  # before any work: the grids will be (2B)^3
     for name, value in (("fixed_modality", fixed_modality), ("moving_modality", moving_modality)):
         if value not in MODALITIES:
             raise InputError(f"{name} {value!r} is not supported; use one of {', '.join(MODALITIES)}")

@@ -137,6 +137,11 @@ class TestErrors:
         with pytest.raises(InputError, match="learned feature extractors are not part of dpcn_med yet"):
             register(mni_2mm(), mni_2mm(), model="default")
 
+    @pytest.mark.parametrize("bandwidth", [0, 3, 129])
+    def test_bandwidth_out_of_range(self, bandwidth):
+        with pytest.raises(InputError, match=f"bandwidth {bandwidth} is out of range"):
+            register(mni_2mm(), mni_2mm(), bandwidth=bandwidth)
+
     def test_unknown_modality(self):
         with pytest.raises(InputError, match="fixed_modality 'pet'"):
             register(mni_2mm(), mni_2mm(), fixed_modality="pet")
