@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import SimpleITK as sitk
 
-from dpcn_med.geometry import homogeneous_matrix
+from dpcn_med.geometry import homogeneous_matrix, scale_and_rotation
 from dpcn_med.preprocess import foreground_mask
 
 
@@ -35,9 +35,7 @@ def moved_copy(image: sitk.Image, fixed_to_moving: sitk.Transform) -> sitk.Image
     change (``origin' = T(origin)``, ``direction' = R direction``, ``spacing' = mu spacing``); nothing leaves the
     field of view, whatever the rotation.
     """
-    matrix = homogeneous_matrix(fixed_to_moving)
-    scale = float(np.cbrt(np.linalg.det(matrix[:3, :3])))
-    rotation = matrix[:3, :3] / scale
+    scale, rotation = scale_and_rotation(homogeneous_matrix(fixed_to_moving)[:3, :3])
     direction = np.asarray(image.GetDirection(), dtype=np.float64).reshape(3, 3)
     moved = sitk.Image(image)
     moved.SetOrigin(fixed_to_moving.TransformPoint(image.GetOrigin()))

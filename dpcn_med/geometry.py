@@ -320,19 +320,25 @@ def physical_transform(rotation: Tensor, scale: float | None, translation: Tenso
     return similarity_transform(matrix, centre, rigid=scale is None)
 
 
+def scale_and_rotation(linear: np.ndarray) -> tuple[float, np.ndarray]:
+    """Split the ``(3, 3)`` linear part ``mu R`` of a similarity into ``mu`` and the rotation nearest to ``R``.
+
+    The rotation is projected in float64 (SVD): ITK checks orthogonality to 1e-10.
+    """
+    mu = float(np.cbrt(np.linalg.det(linear)))
+    u, _, vt = np.linalg.svd(linear / mu)
+    return mu, u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+
+
 def similarity_transform(matrix: np.ndarray, centre: np.ndarray, *, rigid: bool) -> sitk.Transform:
     """A ``(4, 4)`` similarity matrix as an ITK transform with the given centre (the matrix is unchanged).
 
     Args:
-        matrix: ``[x', 1] = matrix [x, 1]``, its linear part ``mu R``, R a rotation (projected in float64, since
-            ITK checks orthogonality to 1e-10).
+        matrix: ``[x', 1] = matrix [x, 1]``, its linear part ``mu R``, R a rotation (see :func:`scale_and_rotation`).
         centre: ``(3,)`` rotation centre, same frame as ``x``.
         rigid: a ``VersorRigid3DTransform`` (``mu`` must be 1) or a ``Similarity3DTransform``.
     """
-    linear = matrix[:3, :3]
-    mu = float(np.cbrt(np.linalg.det(linear)))
-    u, _, vt = np.linalg.svd(linear / mu)
-    rotation = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    mu, rotation = scale_and_rotation(matrix[:3, :3])
     transform = sitk.VersorRigid3DTransform() if rigid else sitk.Similarity3DTransform()
     transform.SetCenter(tuple(float(c) for c in centre))
     transform.SetMatrix(rotation.flatten().tolist())

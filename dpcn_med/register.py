@@ -24,6 +24,7 @@ from dpcn_med.geometry import (
     homogeneous_matrix,
     physical_transform,
     rotation_angle,
+    scale_and_rotation,
     similarity_transform,
 )
 from dpcn_med.preprocess import MODALITIES, Preprocessing, pair_grids, prepare, resample_to_grid, to_tensor
@@ -123,9 +124,8 @@ class RegistrationResult:
 def describe_transform(fixed_to_moving: sitk.Transform) -> dict:
     """A transform as JSON: ITK name, parameters, centre, the 4x4 LPS matrix, rotation angle and scale."""
     matrix = homogeneous_matrix(fixed_to_moving)
-    linear = matrix[:3, :3]
-    scale = float(np.cbrt(np.linalg.det(linear)))
-    angle = float(np.degrees(rotation_angle(torch.from_numpy(linear / scale)).item()))
+    scale, rotation = scale_and_rotation(matrix[:3, :3])
+    angle = float(np.degrees(rotation_angle(torch.from_numpy(rotation)).item()))
     return {"type": fixed_to_moving.GetName(), "parameters": list(fixed_to_moving.GetParameters()),
             "fixed_parameters": list(fixed_to_moving.GetFixedParameters()),
             "fixed_to_moving_lps": matrix.tolist(), "rotation_degrees": angle, "scale": scale,

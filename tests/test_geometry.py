@@ -27,6 +27,7 @@ from dpcn_med.geometry import (
     rotation_y,
     rotation_z,
     sample,
+    scale_and_rotation,
     similarity_transform,
     slicer_to_parent_ras,
     squared_distance_from_centre,
@@ -224,6 +225,14 @@ class TestHomogeneousMatrix:
     def test_rejects_nonlinear(self):
         with pytest.raises(ValueError, match="not a linear transform"):
             homogeneous_matrix(sitk.DisplacementFieldTransform(3))
+
+
+class TestScaleAndRotation:
+    def test_splits_mu_r(self):
+        rotation = axis_angle_to_matrix(torch.tensor([0.3, 2.0, -1.1], dtype=torch.float64)).numpy()
+        mu, found = scale_and_rotation(1.13 * rotation)
+        assert mu == pytest.approx(1.13)
+        np.testing.assert_allclose(found, rotation, atol=1e-12)
 
 
 class TestSimilarityTransform:
