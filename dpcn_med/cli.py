@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import shutil
 import sys
@@ -49,6 +50,9 @@ def _parser() -> argparse.ArgumentParser:
     options.add_argument("--moving-modality", default="auto", choices=("auto", "ct", "mr", "us"))
     options.add_argument("--min-confidence", type=float, default=MIN_CONFIDENCE,
                          help=f"exit with code 3 below this solver confidence (default {MIN_CONFIDENCE})")
+    options.add_argument("--progress", choices=("auto", "json"), default="auto",
+                         help="auto (default): a bar on a terminal; json: one JSON object per line on stdout, "
+                         '{"stage": ..., "fraction": ...}, for programs that drive dpcn-med (the Slicer module)')
     loudness = options.add_mutually_exclusive_group()
     loudness.add_argument("-q", "--quiet", action="store_true", help="print errors only")
     loudness.add_argument("-v", "--verbose", action="store_true", help="print timings; tracebacks on errors")
@@ -77,16 +81,21 @@ def _parser() -> argparse.ArgumentParser:
 
 
 class _Progress:
-    """A one-line progress bar on an interactive terminal; stage names with --verbose elsewhere; silent with -q."""
+    """A one-line progress bar on an interactive terminal; stage names with --verbose elsewhere; silent with -q;
+    JSON lines on stdout with ``--progress json`` (whatever the loudness)."""
 
-    def __init__(self, quiet: bool, verbose: bool, label: str = "") -> None:
-        self.live = not quiet and sys.stderr.isatty()
+    def __init__(self, quiet: bool, verbose: bool, label: str = "", json_lines: bool = False) -> None:
+        self.json = json_lines
+        self.live = not quiet and not json_lines and sys.stderr.isatty()
         self.verbose = verbose and not self.live
         self.label = label
         self.stage = ""
 
     def __call__(self, stage: str, fraction: float) -> None:
-        if self.live:
+        if self.json:
+            print(json.dumps({"stage": stage, "fraction": round(float(fraction), 4), "pair": self.label.strip()}),
+                  flush=True)
+        elif self.live:
             filled = int(round(30 * fraction))
             sys.stderr.write(f"\r{self.label}[{'#' * filled}{'.' * (30 - filled)}] {fraction:4.0%} {stage:<14s}")
             sys.stderr.flush()
@@ -128,7 +137,7 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
     result = register(fixed, moving, mode=args.mode, model=args.model, bandwidth=args.bandwidth, refine=args.refine,
                       device=args.device, fixed_mask=fixed_mask, moving_mask=moving_mask,
                       fixed_modality=args.fixed_modality, moving_modality=args.moving_modality, resample=True,
-                      progress=_Progress(args.quiet, args.verbose, label))
+                      progress=_Progress(args.quiet, args.verbose, label, args.progress == "json"))
     low = result.confidence < args.min_confidence
     report = registration_report(result, fixed=fixed, moving=moving, fixed_mask=fixed_mask, moving_mask=moving_mask,
                                  min_confidence=args.min_confidence, outputs=list(OUTPUT_NAMES))
@@ -294,6 +303,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as error:
         if verbose:
             traceback.print_exc()
-        print(f"dpcn-med: internal error: {type(error).__name__}: {error} (rerun with --verbose for the traceback)",
+        message = " ".join(str(error).split())  # one line, whatever the library raised (ITK's messages span several)
+        print(f"dpcn-med: internal error: {type(error).__name__}: {message} (rerun with --verbose for the traceback)",
               file=sys.stderr)
         return EXIT_INTERNAL

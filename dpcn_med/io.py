@@ -616,7 +616,11 @@ def read_mesh(path: str | os.PathLike) -> pyvista.PolyData:
         raise InputNotFoundError(f"{name}: not found (no such file); check the path")
     if not is_mesh_path(name):
         raise InputError(f"{name}: not a mesh file; expected one of {', '.join(MESH_SUFFIXES)}")
-    import pyvista as pv  # imported here: VTK takes about a second to load and most runs read no mesh
+    try:
+        import pyvista as pv  # imported here: VTK takes about a second to load and most runs read no mesh
+    except ImportError:
+        raise InputError(f"{name}: reading surface meshes needs pyvista, an optional dependency (it brings its own "
+                         "VTK, which clashes with Slicer's); install it with: pip install 'dpcn_med[mesh]'") from None
 
     try:
         mesh = pv.read(name)

@@ -80,7 +80,7 @@ class RegistrationResult:
         moving_grid: canonical cube of the moving volume (same spacing).
         modalities: ``(fixed, moving)`` modality used for intensity normalisation.
         metric: Mattes mutual information (SimpleITK's sign: lower is better) at ``"stored"`` (identity),
-            ``"dpc"`` and ``"refined"`` (``None`` without refinement).
+            ``"dpc"`` and ``"refined"`` (``None`` without refinement, or where the pose leaves no overlap).
         refined: whether ``fixed_to_moving`` is the refined transform.
         timings: wall-clock seconds per step (``read``, ``preprocess``, ``solve``, ``refine``, ``resample``) and
             per solver stage (``solver.*``).
@@ -256,12 +256,13 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         metric["stored"] = mattes_metric(fixed_image, moving_image, sitk.Transform(3, sitk.sitkIdentity), masks,
                                          refinement)
         metric["dpc"] = mattes_metric(fixed_image, moving_image, dpc, masks, refinement)
-        candidate = refine_transform(fixed_image, moving_image, dpc, masks, refinement,
-                                     lambda fraction: report("refining", 0.4 + 0.5 * fraction))
-        metric["refined"] = mattes_metric(fixed_image, moving_image, candidate, masks, refinement)
-        # The local optimiser only ever starts from the global estimate; keep it only if it improved the metric.
-        if metric["refined"] <= metric["dpc"]:
-            final, refined = candidate, True
+        if metric["dpc"] is not None:  # a global estimate without overlap is wrong and no local search starts there
+            candidate = refine_transform(fixed_image, moving_image, dpc, masks, refinement,
+                                         lambda fraction: report("refining", 0.4 + 0.5 * fraction))
+            metric["refined"] = mattes_metric(fixed_image, moving_image, candidate, masks, refinement)
+            # The local optimiser only ever starts from the global estimate; keep it only if it improved the metric.
+            if metric["refined"] is not None and metric["refined"] <= metric["dpc"]:
+                final, refined = candidate, True
         timings["refine"] = time.perf_counter() - start
 
     resampled = None
@@ -305,12 +306,20 @@ def _registration_method(fixed: sitk.Image, masks: tuple[sitk.Image | None, sitk
 
 
 def mattes_metric(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform,
-                  masks: tuple[sitk.Image | None, sitk.Image | None], settings: Refinement = Refinement()) -> float:
-    """Mattes mutual information of the pair under ``fixed_to_moving`` at full resolution (lower is better)."""
+                  masks: tuple[sitk.Image | None, sitk.Image | None],
+                  settings: Refinement = Refinement()) -> float | None:
+    """Mattes mutual information of the pair under ``fixed_to_moving`` at full resolution (lower is better); ``None``
+    where the transform maps no sampled fixed point into the moving image (no overlap, e.g. two unrelated scanner
+    frames taken as they are stored)."""
     method = _registration_method(fixed, masks, settings)
     method.SetMetricSamplingPercentage(min(1.0, 4 * settings.samples / np.prod(fixed.GetSize())), settings.seed)
     method.SetInitialTransform(fixed_to_moving)
-    return method.MetricEvaluate(sitk.Cast(fixed, sitk.sitkFloat32), sitk.Cast(moving, sitk.sitkFloat32))
+    try:
+        return method.MetricEvaluate(sitk.Cast(fixed, sitk.sitkFloat32), sitk.Cast(moving, sitk.sitkFloat32))
+    except RuntimeError as error:
+        if "do not sufficiently overlap" in str(error) or "outside moving image buffer" in str(error):
+            return None
+        raise
 
 
 def refine_transform(fixed: sitk.Image, moving: sitk.Image, initial: sitk.Transform,

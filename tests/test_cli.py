@@ -234,17 +234,30 @@ class TestLowConfidence:
         assert report["status"] == "low confidence" and report["confidence"] < report["min_confidence"]
 
 
+class TestProgress:
+    def test_json_lines_for_programs(self, pair, tmp_path, capsys):
+        code = main(["register", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "out"), "--no-refine", "-q",
+                     "--progress", "json"])
+        assert code == 0
+        events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+        assert [e["stage"] for e in events][0] == "reading" and events[-1] == {"stage": "done", "fraction": 1.0,
+                                                                                 "pair": ""}
+        fractions = [e["fraction"] for e in events]
+        assert fractions == sorted(fractions) and {"solving", "resampling"} <= {e["stage"] for e in events}
+
+
 class TestFailureLeavesNothing:
     def test_internal_error_while_writing(self, pair, tmp_path, monkeypatch, capsys):
         import dpcn_med.report
 
         def broken(*args, **kwargs):
-            raise RuntimeError("disk on fire")
+            raise RuntimeError("disk on fire\nsecond line of the message")
 
         monkeypatch.setattr(dpcn_med.report, "overview_figure", broken)
         output = tmp_path / "out"
         code = main(["register", str(pair[0]), str(pair[1]), "-o", str(output), "--no-refine"])
-        assert code == 1 and "disk on fire" in capsys.readouterr().err
+        error = capsys.readouterr().err
+        assert code == 1 and "disk on fire second line of the message" in error and error.count("\n") == 1
         assert not output.exists() and not list(tmp_path.glob(".dpcn-med-*"))
 
 

@@ -6,6 +6,7 @@ import json
 import math
 import os
 import re
+import sys
 from pathlib import Path
 
 import nibabel
@@ -536,6 +537,12 @@ class TestReadMesh:
 
     def test_missing(self, tmp_path):
         with pytest.raises(InputNotFoundError, match=r"m\.stl: not found"):
+            io.read_mesh(tmp_path / "m.stl")
+
+    def test_without_pyvista_says_how_to_install_it(self, tmp_path, monkeypatch):
+        (tmp_path / "m.stl").write_bytes(b"solid m\nendsolid m\n")
+        monkeypatch.setitem(sys.modules, "pyvista", None)  # what an installation without the mesh extra gives
+        with pytest.raises(InputError, match=r"m\.stl: reading surface meshes needs pyvista.*dpcn_med\[mesh\]"):
             io.read_mesh(tmp_path / "m.stl")
 
 

@@ -51,6 +51,16 @@ class TestRoundTrip:
         assert target_registration_error(result.dpc_transform, truth, corners) < 2 * result.fixed_grid.spacing
         assert target_registration_error(result.fixed_to_moving, truth, corners) < 1.0
 
+    def test_start_without_any_overlap(self):
+        """Two scanner frames half a metre apart: no fixed point maps into the moving image as stored, so the stored
+        pose has no metric (``None``), and the registration still finds the pose."""
+        fixed = mni_2mm()
+        truth = random_similarity(np.random.default_rng(5), foreground_box(fixed)[0], max_shift_mm=0.0)
+        truth.SetTranslation((500.0, -300.0, 200.0))
+        result = register(fixed, moved_copy(fixed, truth))
+        assert result.metric["stored"] is None and result.refined
+        assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 1.0
+
     def test_paths_and_images_give_the_same_result(self, tmp_path):
         fixed = mni_2mm()
         moving = moved_copy(fixed, random_similarity(np.random.default_rng(2), foreground_box(fixed)[0]))
