@@ -1,0 +1,167 @@
+"""One registration of two volume nodes, from writing the inputs to the transform node in the scene.
+
+:class:`Registration` is asynchronous (start, :meth:`~Registration.poll`, :meth:`~Registration.finish` or
+:meth:`~Registration.cancel`) for the widget's timer; :func:`register_volumes` runs one to the end, for Slicer's
+Python console and batch scripts. Neither needs Qt or the Slicer application.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import SimpleITK as sitk
+
+from DPCNRegistrationLib import process
+from DPCNRegistrationLib.process import Event, Job, Options
+from DPCNRegistrationLib.transforms import base_transform_node, place_result, read_transform_file
+from DPCNRegistrationLib.volumes import image_to_volume, parent_to_world, transform_to_world, volume_to_image
+
+CONFIDENCE_ATTRIBUTE = "DPCNRegistration.Confidence"
+
+
+class RegistrationError(RuntimeError):
+    """The registration process failed; the message is dpcn-med's own one-line explanation."""
+
+
+@dataclass
+class Result:
+    """What a finished registration put into the scene."""
+
+    transform: object
+    """``vtkMRMLLinearTransformNode`` the moving volume now hangs under."""
+    volume: object | None
+    """``vtkMRMLScalarVolumeNode`` with the moving volume resampled onto the fixed grid, when one was asked for."""
+    confidence: float
+    low_confidence: bool
+    """dpcn-med wrote the result but its confidence is under its threshold: look before trusting it."""
+    report: dict = field(repr=False)
+    """dpcn-med's report.json."""
+    seconds: float = 0.0
+
+
+class Registration:
+    """Register ``moving`` onto ``fixed`` in a separate process, started on construction.
+
+    Args:
+        fixed, moving: scalar volume nodes, taken as shown (linear parent transforms applied).
+        options: the registration's choices.
+        output_transform: linear transform node to write (a new one when ``None``).
+        output_volume: scalar volume node to fill with the resampled moving volume (none when ``None``).
+        python: the Python to run dpcn-med with (default :func:`process.python_executable`).
+        workspace: folder for the temporary files (default the system's); they are deleted when the run ends.
+
+    Raises:
+        ValueError: a missing, empty or repeated volume, or an output that is one of the inputs.
+    """
+
+    def __init__(self, fixed, moving, options: Options | None = None, *, output_transform=None, output_volume=None,
+                 python: str | None = None, workspace: str | None = None) -> None:
+        _check_inputs(fixed, moving, output_transform, output_volume)
+        options = options or Options()
+        self.fixed, self.moving, self.options = fixed, moving, options
+        self.scene = moving.GetScene()
+        self.output_transform, self.output_volume = output_transform, output_volume
+        self.base = base_transform_node(moving, output_transform)
+        self.started = time.perf_counter()
+        self.folder = Path(tempfile.mkdtemp(prefix="DPCNRegistration-", dir=workspace))
+        try:
+            fixed_path, moving_path = self.folder / "fixed.nrrd", self.folder / "moving.nrrd"
+            sitk.WriteImage(volume_to_image(fixed, world=parent_to_world(fixed)), str(fixed_path))
+            sitk.WriteImage(volume_to_image(moving, world=transform_to_world(self.base)), str(moving_path))
+            self.job = Job(process.command(fixed_path, moving_path, self.folder / "result", options, python=python))
+        except BaseException:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            raise
+
+    def poll(self) -> list[Event]:
+        """What the process reported since the last call (see :class:`process.Event`)."""
+        return self.job.poll()
+
+    @property
+    def finished(self) -> bool:
+        return self.job.finished
+
+    def cancel(self) -> None:
+        """Stop the process and delete its files; the scene is left as it was."""
+        self.job.cancel()
+        self.job.wait(10)
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+    def finish(self) -> Result:
+        """Wait for the process and load its result into the scene (temporary files deleted either way).
+
+        Raises:
+            RegistrationError: the process failed or was cancelled; nothing in the scene changed.
+        """
+        try:
+            self.job.wait()
+            if self.job.cancelled:
+                raise RegistrationError("the registration was cancelled")
+            if self.job.returncode not in (process.EXIT_OK, process.EXIT_LOW_CONFIDENCE):
+                raise RegistrationError(self.job.error_message())
+            return self._load(self.folder / "result")
+        finally:
+            shutil.rmtree(self.folder, ignore_errors=True)
+
+    def _load(self, folder: Path) -> Result:
+        report = json.loads((folder / "report.json").read_text())
+        registration = read_transform_file(folder / "transform.tfm", self.scene)
+        transform = self.output_transform
+        if transform is None:
+            transform = self.scene.AddNewNodeByClass("vtkMRMLLinearTransformNode")
+            transform.SetName(self.scene.GenerateUniqueName(f"{self.moving.GetName()} to {self.fixed.GetName()}"))
+        place_result(registration, self.moving, self.fixed, transform, self.base)
+        transform.SetAttribute(CONFIDENCE_ATTRIBUTE, f"{report['confidence']:.6g}")
+        if self.output_volume is not None:
+            image_to_volume(sitk.ReadImage(str(folder / "moving_resampled.nii.gz")), self.output_volume)
+            self.output_volume.SetAndObserveTransformNodeID(None)  # on the fixed grid as shown, in world coordinates
+            if self.output_volume.GetDisplayNode() is None:
+                self.output_volume.CreateDefaultDisplayNodes()
+        return Result(transform=transform, volume=self.output_volume, confidence=float(report["confidence"]),
+                      low_confidence=self.job.returncode == process.EXIT_LOW_CONFIDENCE, report=report,
+                      seconds=time.perf_counter() - self.started)
+
+
+def register_volumes(fixed, moving, options: Options | None = None, *, output_transform=None, output_volume=None,
+                     progress: Callable[[str, float], None] | None = None, python: str | None = None,
+                     workspace: str | None = None) -> Result:
+    """Register ``moving`` onto ``fixed`` and wait for it (arguments as :class:`Registration`); ``progress`` gets
+    ``(stage, fraction done)``."""
+    registration = Registration(fixed, moving, options, output_transform=output_transform,
+                                output_volume=output_volume, python=python, workspace=workspace)
+    try:
+        while not registration.finished:
+            for event in registration.poll():
+                if event.kind == "progress" and progress is not None:
+                    progress(event.text, event.fraction)
+            time.sleep(0.05)
+    except BaseException:
+        registration.cancel()
+        raise
+    return registration.finish()
+
+
+def _check_inputs(fixed, moving, output_transform, output_volume) -> None:
+    for role, node in (("fixed", fixed), ("moving", moving)):
+        if node is None:
+            raise ValueError(f"choose a {role} volume")
+        if not node.IsA("vtkMRMLScalarVolumeNode") or node.GetImageData() is None:
+            raise ValueError(f"{node.GetName()}: the {role} volume holds no scalar image data")
+    if fixed.GetID() == moving.GetID():
+        raise ValueError(f"{fixed.GetName()}: is both the fixed and the moving volume; choose two volumes")
+    if output_volume is not None and output_volume.GetID() in (fixed.GetID(), moving.GetID()):
+        raise ValueError(f"{output_volume.GetName()}: the output volume is an input; choose or create another "
+                         "(inputs are never overwritten)")
+    if output_transform is not None:
+        parent = fixed.GetParentTransformNode()
+        while parent is not None:
+            if parent.GetID() == output_transform.GetID():
+                raise ValueError(f"{output_transform.GetName()}: the fixed volume depends on this output transform; "
+                                 "choose another output transform")
+            parent = parent.GetParentTransformNode()

@@ -1,0 +1,146 @@
+"""The registration as a separate Python process: command line, streamed progress, cancel.
+
+Slicer's own Python (``PythonSlicer``) runs :mod:`DPCNRegistrationLib.run_registration`, which runs ``dpcn-med
+register --progress json``. A reader thread turns the child's output into events that :meth:`Job.poll` hands out
+without ever blocking, so a Qt timer can drive it and the application stays responsive.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import shutil
+import subprocess
+import sys
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+SCRIPT = Path(__file__).with_name("run_registration.py")
+EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_LOW_CONFIDENCE = 0, 1, 2, 3
+"""dpcn-med's exit codes (dpcn_med.cli); 3 means a result was written with a low confidence."""
+
+
+@dataclass(frozen=True)
+class Options:
+    """What the widget offers; the names and defaults follow the ``dpcn-med register`` options."""
+
+    mode: str = "rigid"
+    model: str = "default"
+    """``default`` (dpcn-med's default model), ``learning-free``, or the path of a model file."""
+    refine: bool = True
+    device: str = "auto"
+    bandwidth: int = 32
+
+    def arguments(self) -> list[str]:
+        """The ``dpcn-med register`` options for these choices."""
+        arguments = ["--mode", self.mode, "--bandwidth", str(int(self.bandwidth)), "--device", self.device]
+        if self.model == "learning-free":
+            arguments += ["--model", "none"]
+        elif self.model != "default":
+            arguments += ["--model", os.fspath(self.model)]
+        if not self.refine:
+            arguments.append("--no-refine")
+        return arguments
+
+
+@dataclass(frozen=True)
+class Event:
+    """One thing the child said: ``kind`` is ``progress`` (``fraction`` in [0, 1] and ``text`` the stage), ``log``
+    (a line of output) or ``exit`` (``code`` set)."""
+
+    kind: str
+    text: str = ""
+    fraction: float = 0.0
+    code: int | None = None
+
+
+def python_executable() -> str:
+    """The Python to run the registration with: ``PythonSlicer`` inside 3D Slicer (the same site-packages as the
+    application), else this interpreter."""
+    inside_slicer = "slicer" in sys.modules and hasattr(sys.modules["slicer"], "app")
+    found = shutil.which("PythonSlicer") if inside_slicer else None
+    return found or sys.executable
+
+
+def command(fixed: str | os.PathLike, moving: str | os.PathLike, output: str | os.PathLike, options: Options, *,
+            python: str | None = None) -> list[str]:
+    """The child's command line: register ``moving`` onto ``fixed`` into the folder ``output``."""
+    return [python or python_executable(), os.fspath(SCRIPT), "register", os.fspath(fixed), os.fspath(moving),
+            "-o", os.fspath(output), *options.arguments(), "--progress", "json"]
+
+
+def parse_line(line: str) -> Event:
+    """An output line as an event: dpcn-med's JSON progress objects become ``progress``, anything else ``log``."""
+    text = line.rstrip("\n")
+    if text.startswith("{"):
+        try:
+            message = json.loads(text)
+        except json.JSONDecodeError:
+            message = None
+        if isinstance(message, dict) and "stage" in message and "fraction" in message:
+            return Event("progress", text=str(message["stage"]), fraction=float(message["fraction"]))
+    return Event("log", text=text)
+
+
+class Job:
+    """A running registration process; :meth:`poll` returns what happened since the last call."""
+
+    def __init__(self, arguments: list[str], *, environment: dict[str, str] | None = None) -> None:
+        self.arguments = arguments
+        self.events: queue.Queue[Event] = queue.Queue()
+        self.log: list[str] = []
+        self.returncode: int | None = None
+        self.cancelled = False
+        self._process = subprocess.Popen(arguments, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                         bufsize=1, env=environment)
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self._process.stdout is not None
+        for line in self._process.stdout:
+            self.events.put(parse_line(line))
+        self.events.put(Event("exit", code=self._process.wait()))
+
+    def poll(self) -> list[Event]:
+        """Events since the last call, oldest first, without waiting; the last one is ``exit`` when it ended."""
+        events = []
+        while True:
+            try:
+                event = self.events.get_nowait()
+            except queue.Empty:
+                return events
+            if event.kind == "log":
+                self.log.append(event.text)
+            elif event.kind == "exit":
+                self.returncode = event.code
+            events.append(event)
+
+    @property
+    def finished(self) -> bool:
+        return self.returncode is not None
+
+    def wait(self, timeout: float | None = None) -> list[Event]:
+        """Block until the process ends (or ``timeout`` seconds); every event not yet polled."""
+        self._reader.join(timeout)
+        return self.poll()
+
+    def cancel(self) -> None:
+        """Stop the process (terminate, then kill after 5 s); its partial outputs are the caller's to delete."""
+        self.cancelled = True
+        if self._process.poll() is None:
+            self._process.terminate()
+            try:
+                self._process.wait(5)
+            except subprocess.TimeoutExpired:
+                self._process.kill()
+
+    def error_message(self) -> str:
+        """dpcn-med's one-line error (its last line starting ``dpcn-med:``), else the child's last line of output."""
+        lines = [line for line in self.log if line.strip()]
+        own = [line for line in lines if line.startswith("dpcn-med:")]
+        if own or lines:
+            return (own or lines)[-1]
+        return f"the registration process ended with code {self.returncode}"

@@ -1,0 +1,462 @@
+"""The Slicer extension (slicer_module/) outside Slicer: its Lib against real MRML nodes from slicer-core (no Qt), the
+registration process it drives, and the consistency of the module file, its .ui and its CMake lists.
+
+No stand-ins: volumes are read by Slicer's own storage node, transforms by its transform storage node, and the
+registration runs ``dpcn-med`` in a child Python exactly as PythonSlicer would.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib.metadata
+import json
+import os
+import re
+import subprocess
+import sys
+import textwrap
+import time
+import xml.etree.ElementTree as ElementTree
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from dpcn_med import io
+from dpcn_med.cli import main as dpcn_med_cli
+from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity
+from dpcn_med.geometry import slicer_to_parent_ras
+from tests.conftest import shared_path
+
+slicer = pytest.importorskip("slicer", reason="slicer-core (the test extra) is not installed")
+vtk = pytest.importorskip("vtk")
+
+from DPCNRegistrationLib import dependencies, process  # noqa: E402  (needs slicer-core, checked above)
+from DPCNRegistrationLib.logic import Registration, RegistrationError, register_volumes  # noqa: E402
+from DPCNRegistrationLib.process import Job, Options, parse_line  # noqa: E402
+from DPCNRegistrationLib.transforms import (  # noqa: E402
+    ROLE_ATTRIBUTES,
+    base_transform_node,
+    place_result,
+    read_transform_file,
+)
+from DPCNRegistrationLib.volumes import (  # noqa: E402
+    RAS_FROM_LPS,
+    array_to_matrix,
+    ijk_to_ras,
+    image_to_volume,
+    matrix_to_array,
+    parent_to_world,
+    transform_to_world,
+    volume_to_image,
+)
+
+MODULE = Path(__file__).resolve().parents[1] / "slicer_module" / "DPCNRegistration"
+QUICK = Options(model="learning-free", bandwidth=16)
+
+
+def load_volume(scene, path: Path, name: str):
+    """A scalar volume node read by Slicer's own volume storage node, as File > Add Data does."""
+    storage = slicer.vtkMRMLVolumeArchetypeStorageNode()
+    scene.AddNode(storage)
+    storage.SetFileName(str(path))
+    node = slicer.vtkMRMLScalarVolumeNode()
+    node.SetName(name)
+    scene.AddNode(node)
+    assert storage.ReadData(node), f"Slicer's storage node could not read {path}"
+    return node
+
+
+def linear_transform(scene, matrix: np.ndarray, name: str = "transform"):
+    node = slicer.vtkMRMLLinearTransformNode()
+    node.SetName(name)
+    scene.AddNode(node)
+    node.SetMatrixTransformToParent(array_to_matrix(matrix))
+    return node
+
+
+def rotation_ras(degrees: float, axis, shift) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    matrix = np.eye(4)
+    axis = np.asarray(axis, dtype=float)
+    matrix[:3, :3] = Rotation.from_rotvec(np.deg2rad(degrees) * axis / np.linalg.norm(axis)).as_matrix()
+    matrix[:3, 3] = shift
+    return matrix
+
+
+def oblique_image(dtype=sitk.sitkInt16) -> sitk.Image:
+    rng = np.random.default_rng(3)
+    image = sitk.GetImageFromArray(rng.integers(-1000, 2000, size=(7, 9, 11)).astype(np.int16))
+    image = sitk.Cast(image, dtype)
+    image.SetSpacing((0.7, 1.3, 2.9))
+    image.SetOrigin((-40.5, 12.25, 7.0))
+    image.SetDirection(rotation_ras(33, (1, 2, -0.5), (0, 0, 0))[:3, :3].ravel().tolist())
+    return image
+
+
+def homogeneous(points: np.ndarray) -> np.ndarray:
+    return np.hstack([points, np.ones((len(points), 1))]).T
+
+
+class TestVolumes:
+    @pytest.mark.shared_data
+    @pytest.mark.parametrize("relative", ["rire/training_001_mr_T1.mha", "stroke/T1.nii.gz",
+                                          "mridir/mridir_ct_3p0mm.nii.gz"])
+    def test_what_slicer_reads_converts_to_what_simpleitk_reads(self, relative):
+        path = shared_path(relative)
+        node = load_volume(slicer.vtkMRMLScene(), path, "volume")
+        converted, expected = volume_to_image(node), sitk.ReadImage(str(path))
+        assert converted.GetSize() == expected.GetSize()
+        np.testing.assert_allclose(converted.GetSpacing(), expected.GetSpacing(), atol=1e-5)
+        np.testing.assert_allclose(converted.GetOrigin(), expected.GetOrigin(), atol=1e-4)
+        np.testing.assert_allclose(converted.GetDirection(), expected.GetDirection(), atol=1e-5)
+        np.testing.assert_array_equal(sitk.GetArrayViewFromImage(converted), sitk.GetArrayViewFromImage(expected))
+
+    @pytest.mark.parametrize("pixel", [sitk.sitkInt16, sitk.sitkFloat32, sitk.sitkUInt8])
+    def test_round_trip_keeps_voxels_type_and_oblique_geometry(self, pixel):
+        image = oblique_image(pixel)
+        node = slicer.vtkMRMLScalarVolumeNode()
+        image_to_volume(image, node)
+        back = volume_to_image(node)
+        assert back.GetPixelID() == image.GetPixelID()
+        np.testing.assert_array_equal(sitk.GetArrayViewFromImage(back), sitk.GetArrayViewFromImage(image))
+        np.testing.assert_allclose(back.GetSpacing(), image.GetSpacing(), atol=1e-12)
+        np.testing.assert_allclose(back.GetOrigin(), image.GetOrigin(), atol=1e-12)
+        np.testing.assert_allclose(back.GetDirection(), image.GetDirection(), atol=1e-12)
+
+    def test_a_voxel_lands_at_the_same_physical_point_in_ras(self):
+        image = oblique_image()
+        node = slicer.vtkMRMLScalarVolumeNode()
+        image_to_volume(image, node)
+        index = (3, 5, 6)
+        ras = ijk_to_ras(node) @ np.array([*index, 1.0])
+        np.testing.assert_allclose(RAS_FROM_LPS[:3, :3] @ image.TransformIndexToPhysicalPoint(index), ras[:3],
+                                   atol=1e-9)
+
+    def test_world_geometry_hardens_linear_parents(self):
+        scene = slicer.vtkMRMLScene()
+        node = slicer.vtkMRMLScalarVolumeNode()
+        scene.AddNode(node)
+        image = oblique_image()
+        image_to_volume(image, node)
+        outer = linear_transform(scene, rotation_ras(70, (0, 1, 1), (5, -3, 2)), "outer")
+        inner = linear_transform(scene, rotation_ras(-20, (1, 0, 0), (0, 8, 0)), "inner")
+        inner.SetAndObserveTransformNodeID(outer.GetID())
+        node.SetAndObserveTransformNodeID(inner.GetID())
+        world = parent_to_world(node)
+        inner_matrix = matrix_to_array(inner.GetMatrixTransformToParent())
+        np.testing.assert_allclose(world, transform_to_world(outer) @ inner_matrix, atol=1e-12)
+        hardened = volume_to_image(node, world=world)
+        index = (1, 7, 2)
+        expected = world @ RAS_FROM_LPS @ np.array([*image.TransformIndexToPhysicalPoint(index), 1.0])
+        np.testing.assert_allclose(RAS_FROM_LPS[:3, :3] @ hardened.TransformIndexToPhysicalPoint(index),
+                                   expected[:3], atol=1e-9)
+
+    def test_refuses_empty_vector_and_sheared_volumes(self):
+        scene = slicer.vtkMRMLScene()
+        empty = slicer.vtkMRMLScalarVolumeNode()
+        empty.SetName("empty")
+        with pytest.raises(ValueError, match="empty: holds no image data"):
+            volume_to_image(empty)
+        vector = slicer.vtkMRMLVectorVolumeNode()
+        vector.SetName("rgb")
+        data = vtk.vtkImageData()
+        data.SetDimensions(4, 4, 4)
+        data.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 3)
+        vector.SetAndObserveImageData(data)
+        with pytest.raises(ValueError, match="rgb: has 3 components"):
+            volume_to_image(vector)
+        node = slicer.vtkMRMLScalarVolumeNode()
+        node.SetName("head")
+        scene.AddNode(node)
+        image_to_volume(oblique_image(), node)
+        shear = np.eye(4)
+        shear[0, 1] = 0.4
+        node.SetAndObserveTransformNodeID(linear_transform(scene, shear, "shear").GetID())
+        with pytest.raises(ValueError, match="head: its geometry .* sheared"):
+            volume_to_image(node, world=parent_to_world(node))
+        grid = slicer.vtkMRMLGridTransformNode()
+        grid.SetName("warp")
+        scene.AddNode(grid)
+        node.SetAndObserveTransformNodeID(grid.GetID())
+        with pytest.raises(ValueError, match="warp: is not a linear transform"):
+            parent_to_world(node)
+
+
+class TestTransforms:
+    @pytest.mark.parametrize("suffix", [".tfm", ".h5"])
+    def test_reads_a_transform_file_as_slicer_models_it(self, tmp_path, suffix):
+        transform = sitk.VersorRigid3DTransform()
+        transform.SetCenter((10.0, -20.0, 5.0))
+        transform.SetRotation((0.2, -0.5, 0.3), 2.1)
+        transform.SetTranslation((4.0, 7.5, -12.0))
+        path = tmp_path / f"t{suffix}"
+        io.write_transform(transform, path)
+        read = read_transform_file(path, slicer.vtkMRMLScene())
+        np.testing.assert_allclose(read, slicer_to_parent_ras(transform), atol=1e-9)
+
+    def test_unreadable_file_is_refused(self, tmp_path):
+        path = tmp_path / "broken.tfm"
+        path.write_text("#Insight Transform File V1.0\nnot a transform\n")
+        with pytest.raises(ValueError, match="broken.tfm: not a readable linear transform file"):
+            read_transform_file(path, slicer.vtkMRMLScene())
+
+    def test_result_goes_under_the_moving_volumes_parent_and_keeps_it(self):
+        scene = slicer.vtkMRMLScene()
+        fixed, moving = slicer.vtkMRMLScalarVolumeNode(), slicer.vtkMRMLScalarVolumeNode()
+        scene.AddNode(fixed)
+        scene.AddNode(moving)
+        base_matrix = rotation_ras(40, (1, 1, 0), (3, 2, 1))
+        base = linear_transform(scene, base_matrix, "user's transform")
+        moving.SetAndObserveTransformNodeID(base.GetID())
+        output = linear_transform(scene, np.eye(4), "result")
+        assert base_transform_node(moving, output).GetID() == base.GetID()
+        registration = rotation_ras(150, (0.3, -0.8, 0.5), (25, -15, 10))
+        place_result(registration, moving, fixed, output, base)
+        assert moving.GetParentTransformNode().GetID() == output.GetID()
+        assert output.GetParentTransformNode().GetID() == base.GetID()
+        np.testing.assert_allclose(parent_to_world(moving), registration @ base_matrix, atol=1e-9)
+        np.testing.assert_allclose(matrix_to_array(base.GetMatrixTransformToParent()), base_matrix, atol=1e-12)
+        assert (output.GetAttribute(ROLE_ATTRIBUTES[0]), output.GetAttribute(ROLE_ATTRIBUTES[1])) == (
+            fixed.GetID(), moving.GetID())
+        # Registering again into the same output measures from the base again, not from the previous result.
+        assert base_transform_node(moving, output).GetID() == base.GetID()
+
+
+class TestProcess:
+    def test_options_become_dpcn_med_arguments(self):
+        assert Options().arguments() == ["--mode", "rigid", "--bandwidth", "32", "--device", "auto"]
+        assert Options(mode="similarity", model="learning-free", refine=False, device="cpu", bandwidth=16
+                       ).arguments() == ["--mode", "similarity", "--bandwidth", "16", "--device", "cpu",
+                                         "--model", "none", "--no-refine"]
+        assert Options(model="/models/ct_mr.safetensors").arguments()[-2:] == ["--model", "/models/ct_mr.safetensors"]
+        command = process.command("f.nrrd", "m.nrrd", "out", Options(), python="PythonSlicer")
+        assert command[:3] == ["PythonSlicer", str(process.SCRIPT), "register"]
+        assert command[-2:] == ["--progress", "json"]
+
+    def test_parses_progress_and_keeps_other_lines(self):
+        event = parse_line('{"stage": "solving", "fraction": 0.3, "pair": ""}\n')
+        assert (event.kind, event.text, event.fraction) == ("progress", "solving", 0.3)
+        assert parse_line("rotation 150.0 deg, scale 1.0000").kind == "log"
+        assert parse_line("{not json").kind == "log"
+        assert parse_line('{"other": 1}').kind == "log"
+
+    def test_job_streams_events_and_the_exit_code(self):
+        script = textwrap.dedent("""
+            import json, sys
+            print(json.dumps({"stage": "solving", "fraction": 0.5}), flush=True)
+            print("dpcn-med: error: moving.nrrd: holds NaN", flush=True)
+            print("trailing note", flush=True)
+            sys.exit(2)
+        """)
+        job = Job([sys.executable, "-c", script])
+        events = job.wait(30)
+        assert [e.kind for e in events] == ["progress", "log", "log", "exit"]
+        assert job.returncode == 2 and job.finished
+        assert job.error_message() == "dpcn-med: error: moving.nrrd: holds NaN"
+
+    def test_cancel_stops_the_process(self):
+        job = Job([sys.executable, "-c", "import time; print('started', flush=True); time.sleep(60)"])
+        started = time.perf_counter()
+        while not any(e.kind == "log" for e in job.poll()):
+            time.sleep(0.01)
+            assert time.perf_counter() - started < 30
+        job.cancel()
+        job.wait(10)
+        assert job.finished and job.returncode != 0 and job.cancelled
+        assert time.perf_counter() - started < 30
+
+    def test_script_says_when_dpcn_med_is_missing(self):
+        # -S: no site-packages, so dpcn_med is not importable, as in a Slicer where it is not installed yet.
+        done = subprocess.run([sys.executable, "-S", str(process.SCRIPT), "register"], capture_output=True,
+                              text=True, timeout=60)
+        assert done.returncode == 2
+        assert "dpcn_med is not installed in this Python" in done.stdout
+
+
+class TestDependencies:
+    def test_nothing_missing_here(self):
+        assert dependencies.missing() == []
+
+    def test_installs_from_this_checkout_else_from_the_index(self, tmp_path):
+        assert dependencies.source(MODULE / "DPCNRegistration.py") == str(MODULE.parents[1])
+        elsewhere = tmp_path / "Extensions" / "DPCNRegistration" / "DPCNRegistration.py"
+        elsewhere.parent.mkdir(parents=True)
+        assert dependencies.source(elsewhere) == "dpcn_med"
+
+    def test_never_reinstalls_what_slicer_provides(self):
+        requires = importlib.metadata.requires("dpcn_med")
+        kept = dependencies.requirements_to_install(requires)
+        names = {re.match(r"[A-Za-z0-9_.-]+", r).group(0).lower() for r in kept}
+        assert {"monai", "nibabel", "scipy"} <= names
+        assert not names & {"simpleitk", "torch", "vtk", "pyvista", "pytest", "slicer-core", "itk"}
+
+
+@pytest.mark.shared_data
+class TestRegistration:
+    def test_moving_volume_under_a_users_transform_lands_on_the_fixed_one(self, tmp_path):
+        """A real head MRI moved by a known rigid transform and put under a user's transform: the result node, under
+        that transform, maps the moving volume's anatomy onto the fixed one (checked at the head's corners)."""
+        fixed_path = shared_path("seg3d/MR.nii.gz")
+        image = sitk.ReadImage(str(fixed_path))
+        corners = foreground_corners(image)
+        truth = random_similarity(np.random.default_rng(11), corners.mean(axis=0), max_shift_mm=40)
+        io.write_image(moved_copy(image, truth), tmp_path / "moving.nii.gz")
+
+        scene = slicer.vtkMRMLScene()
+        fixed = load_volume(scene, fixed_path, "MR")
+        moving = load_volume(scene, tmp_path / "moving.nii.gz", "MR moved")
+        user = rotation_ras(25, (0, 0, 1), (12, 0, -6))
+        base = linear_transform(scene, user, "user's transform")
+        moving.SetAndObserveTransformNodeID(base.GetID())
+        output_volume = slicer.vtkMRMLScalarVolumeNode()
+        scene.AddNode(output_volume)
+        stages = []
+        result = register_volumes(fixed, moving, QUICK, output_volume=output_volume,
+                                  progress=lambda stage, fraction: stages.append((stage, fraction)))
+
+        assert not result.low_confidence and result.confidence > 0.5
+        assert stages[-1] == ("done", 1.0) and "solving" in {s for s, _ in stages}
+        assert moving.GetParentTransformNode().GetID() == result.transform.GetID()
+        assert result.transform.GetParentTransformNode().GetID() == base.GetID()
+        np.testing.assert_allclose(transform_to_world(base), user, atol=1e-12)  # the user's transform is untouched
+        # Fixed anatomy x (LPS) sits at T(x) in the moved file; under user and result it must come back to x.
+        moved_points = np.array([truth.TransformPoint(p.tolist()) for p in corners])
+        world = parent_to_world(moving) @ RAS_FROM_LPS @ homogeneous(moved_points)
+        error = np.linalg.norm((RAS_FROM_LPS @ world).T[:, :3] - corners, axis=1)
+        assert error.max() < 1.5, f"corner errors {np.round(error, 2)} mm"
+        # The resampled output lies on the fixed grid and shows the same head.
+        resampled, reference = volume_to_image(output_volume), volume_to_image(fixed)
+        assert resampled.GetSize() == reference.GetSize()
+        np.testing.assert_allclose(ijk_to_ras(output_volume), ijk_to_ras(fixed), atol=1e-4)
+        correlation = np.corrcoef(sitk.GetArrayFromImage(resampled).ravel(),
+                                  sitk.GetArrayFromImage(reference).ravel())[0, 1]
+        assert correlation > 0.95
+
+    def test_transform_node_equals_the_cli_transform_file_read_by_slicer(self, tmp_path):
+        """The real MRI-DIR CT onto its T2 (unaligned scanner frames): the module's node and the CLI's .tfm read
+        through vtkMRMLTransformStorageNode give the same matrix."""
+        ct, t2 = shared_path("mridir/mridir_ct_3p0mm.nii.gz"), shared_path("mridir/mridir_t2_3p0mm.nii.gz")
+        assert dpcn_med_cli(["register", str(t2), str(ct), "-o", str(tmp_path / "cli"), "-q",
+                             *QUICK.arguments()]) in (0, 3)
+        scene = slicer.vtkMRMLScene()
+        from_cli = read_transform_file(tmp_path / "cli" / "transform.tfm", scene)
+        result = register_volumes(load_volume(scene, t2, "T2"), load_volume(scene, ct, "CT"), QUICK)
+        from_module = matrix_to_array(result.transform.GetMatrixTransformToParent())
+        np.testing.assert_allclose(from_module[:3, :3], from_cli[:3, :3], atol=1e-3)
+        np.testing.assert_allclose(from_module[:3, 3], from_cli[:3, 3], atol=0.05)
+        report = json.loads((tmp_path / "cli" / "report.json").read_text())
+        assert result.confidence == pytest.approx(report["confidence"], rel=1e-3)
+
+
+class TestRegistrationFailures:
+    @pytest.fixture
+    def pair(self):
+        scene = slicer.vtkMRMLScene()
+        nodes = []
+        for name, angle in (("fixed", 0), ("moving", 40)):
+            node = slicer.vtkMRMLScalarVolumeNode()
+            node.SetName(name)
+            scene.AddNode(node)
+            image = oblique_image(sitk.sitkFloat32)
+            image.SetDirection(rotation_ras(angle, (0, 0, 1), (0, 0, 0))[:3, :3].ravel().tolist())
+            image_to_volume(image, node)
+            nodes.append(node)
+        return scene, nodes[0], nodes[1]
+
+    def test_bad_choices_are_refused_before_anything_runs(self, pair):
+        scene, fixed, moving = pair
+        with pytest.raises(ValueError, match="choose a fixed volume"):
+            Registration(None, moving)
+        with pytest.raises(ValueError, match="fixed: is both the fixed and the moving volume"):
+            Registration(fixed, fixed)
+        with pytest.raises(ValueError, match="fixed: the output volume is an input"):
+            Registration(fixed, moving, output_volume=fixed)
+        empty = slicer.vtkMRMLScalarVolumeNode()
+        empty.SetName("empty")
+        scene.AddNode(empty)
+        with pytest.raises(ValueError, match="empty: the moving volume holds no scalar image data"):
+            Registration(fixed, empty)
+        output = linear_transform(scene, np.eye(4), "result")
+        fixed.SetAndObserveTransformNodeID(output.GetID())
+        with pytest.raises(ValueError, match="result: the fixed volume depends on this output transform"):
+            Registration(fixed, moving, output_transform=output)
+
+    def test_a_failed_process_changes_nothing_and_leaves_no_files(self, pair, tmp_path):
+        scene, fixed, moving = pair
+        python = tmp_path / "python-without-site-packages"
+        python.write_text(f'#!/bin/sh\nexec "{sys.executable}" -S "$@"\n')
+        python.chmod(0o755)
+        nodes = scene.GetNumberOfNodes()
+        registration = Registration(fixed, moving, QUICK, python=str(python), workspace=str(tmp_path))
+        with pytest.raises(RegistrationError, match="dpcn_med is not installed in this Python"):
+            registration.finish()
+        assert scene.GetNumberOfNodes() == nodes and moving.GetParentTransformNode() is None
+        assert not registration.folder.exists()
+
+    def test_cancel_stops_the_registration_and_cleans_up(self, pair, tmp_path):
+        scene, fixed, moving = pair
+        registration = Registration(fixed, moving, QUICK, workspace=str(tmp_path))
+        registration.cancel()
+        assert registration.job.cancelled and registration.finished
+        assert not registration.folder.exists() and moving.GetParentTransformNode() is None
+        with pytest.raises(RegistrationError, match="cancelled"):
+            registration.finish()
+
+
+class TestModuleFiles:
+    """The module file, its .ui, its CMake lists and the Extensions Index entry agree with each other."""
+
+    source = (MODULE / "DPCNRegistration.py").read_text()
+    tree = ast.parse(source)
+    ui = ElementTree.parse(MODULE / "Resources" / "UI" / "DPCNRegistration.ui").getroot()
+
+    def _parameter_fields(self) -> dict[str, ast.expr]:
+        cls = next(n for n in self.tree.body if isinstance(n, ast.ClassDef) and n.name.endswith("ParameterNode"))
+        return {n.target.id: n.annotation for n in cls.body if isinstance(n, ast.AnnAssign)}
+
+    def _widgets(self) -> dict[str, ElementTree.Element]:
+        return {w.get("name"): w for w in self.ui.iter("widget")}
+
+    def test_has_module_widget_logic_and_test_classes(self):
+        classes = {n.name for n in self.tree.body if isinstance(n, ast.ClassDef)}
+        assert {"DPCNRegistration", "DPCNRegistrationParameterNode", "DPCNRegistrationWidget",
+                "DPCNRegistrationLogic", "DPCNRegistrationTest"} <= classes
+
+    def test_every_ui_name_the_widget_uses_exists(self):
+        used = {n.attr for n in ast.walk(self.tree)
+                if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Attribute) and n.value.attr == "ui"}
+        assert used and used <= set(self._widgets()), used - set(self._widgets())
+
+    def test_parameter_names_match_the_parameter_node(self):
+        bound = {}
+        for widget in self.ui.iter("widget"):
+            for prop in widget.findall("property"):
+                if prop.get("name") == "SlicerParameterName":
+                    bound[prop.find("string").text] = widget
+        assert set(bound) == set(self._parameter_fields())
+        for name, annotation in self._parameter_fields().items():
+            if isinstance(annotation, ast.Subscript) and "Choice" in ast.unparse(annotation):
+                choices = ast.literal_eval(re.search(r"Choice\((\[.*?\])\)", ast.unparse(annotation)).group(1))
+                items = [i.find("property/string").text for i in bound[name].findall("item")]
+                assert items == choices, name
+
+    def test_cmake_lists_every_lib_file_and_resource(self):
+        cmake = (MODULE / "CMakeLists.txt").read_text()
+        listed = set(re.findall(r"\$\{MODULE_NAME\}(Lib/\w+\.py|\.py)", cmake))
+        present = {f"Lib/{p.name}" for p in (MODULE / "DPCNRegistrationLib").glob("*.py")} | {".py"}
+        assert listed == present
+        for resource in re.findall(r"(Resources/\S+)", cmake):
+            assert (MODULE / resource.replace("${MODULE_NAME}", "DPCNRegistration")).is_file(), resource
+
+    def test_extension_metadata_and_index_entry(self):
+        cmake = (MODULE.parent / "CMakeLists.txt").read_text()
+        for key in ("HOMEPAGE", "CATEGORY", "CONTRIBUTORS", "DESCRIPTION", "ICONURL", "DEPENDS"):
+            assert re.search(rf"set\(EXTENSION_{key} \S", cmake), key
+        assert re.search(r'set\(EXTENSION_DEPENDS "?PyTorch', cmake)
+        entry = json.loads((MODULE.parent / "DPCNRegistration.json").read_text())
+        assert {"$schema", "category", "scm_url"} <= set(entry) and "PyTorch" in entry["build_dependencies"]
+        assert re.search(r"^project\(DPCNRegistration\)", cmake, re.MULTILINE)
+        assert os.path.getsize(MODULE / "Resources" / "Icons" / "DPCNRegistration.png") > 0
