@@ -171,7 +171,7 @@ class DPCNRegistrationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._registration = None
         try:
             result = registration.finish()
-        except RegistrationError as error:
+        except (RegistrationError, ValueError, OSError) as error:  # dpcn-med's message, or unreadable outputs
             self._log(f"Failed: {error}")
             slicer.util.errorDisplay(f"Registration failed: {error}")
         else:
