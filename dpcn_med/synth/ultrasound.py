@@ -1,0 +1,161 @@
+"""3-D ultrasound simulated from a CT-like volume, in the CT's frame (exact ground truth for CT-US pairs)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from dpcn_med.errors import InputError
+from dpcn_med.geometry import affine_points, grid_centre, sample
+from dpcn_med.synth._common import check_range, check_volumes, normal, uniform
+
+
+@dataclass(frozen=True)
+class UltrasoundConfig:
+    """Probe, field of view and tissue acoustics of :func:`simulated_ultrasound`; the defaults are a head-sized
+    phased array on a canonical grid (the object spans about half of it).
+
+    Attributes:
+        half_angle_degrees: half-angle of the cone of view, uniform in this interval.
+        depth_range: reach of the beams from the apex, fraction of the grid side ``N``, uniform in this interval.
+        standoff: the apex lies this fraction of ``N`` before the object's first voxel along the probe direction.
+        impedance_gain: acoustic impedance ``exp(impedance_gain * ct)`` (relative; monotonic in the CT value).
+        attenuation: absorption of tissue per grid side, times the CT value.
+        bone_level: CT value from which absorption rises towards that of bone (reached at 1).
+        bone_attenuation: extra absorption of bone per grid side (a skull casts an acoustic shadow).
+        reflection_gain: weight of the specular echoes at impedance changes.
+        scatter_gain: weight of the diffuse backscatter of tissue, proportional to its CT value.
+    """
+
+    half_angle_degrees: tuple[float, float] = (30.0, 45.0)
+    depth_range: tuple[float, float] = (0.4, 0.8)
+    standoff: float = 0.05
+    impedance_gain: float = 3.0
+    attenuation: float = 1.0
+    bone_level: float = 0.75
+    bone_attenuation: float = 60.0
+    reflection_gain: float = 1.0
+    scatter_gain: float = 0.2
+
+
+def _probe_directions(probe: Tensor | None, batch: int, generator: torch.Generator, like: Tensor) -> Tensor:
+    """Unit beam directions ``(B, 3)``: ``probe`` normalised, or uniform on the sphere."""
+    if probe is None:
+        probe = normal(generator, (batch, 3), like=like)
+    probe = torch.as_tensor(probe, device=like.device, dtype=like.dtype)
+    if probe.shape not in ((3,), (batch, 3)):
+        raise InputError(f"probe has shape {tuple(probe.shape)}; expected (3,) or ({batch}, 3) directions (x, y, z)")
+    length = probe.norm(dim=-1, keepdim=True)
+    if not bool((length > 0).all()):
+        raise InputError("probe contains a zero vector; a beam direction must be nonzero")
+    return (probe / length).expand(batch, 3)
+
+
+def _lateral_axes(direction: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit vectors ``(B, 3)`` completing ``direction`` ``(B, 3)`` to a right-handed orthonormal frame."""
+    helper = torch.zeros_like(direction)
+    helper[:, 0] = 1.0
+    helper = torch.where(direction[:, :1].abs() > 0.9, helper.roll(1, dims=1), helper)  # never parallel
+    first = torch.linalg.cross(helper, direction)
+    first = first / first.norm(dim=-1, keepdim=True)
+    return first, torch.linalg.cross(direction, first)
+
+
+def _echoes(ct_fan: Tensor, step: Tensor, config: UltrasoundConfig) -> Tensor:
+    """Echo strength along the beams of a fan ``(B, 1, R, V, U)`` (range first), ``step`` ``(B,)`` grid sides."""
+    impedance = torch.exp(config.impedance_gain * ct_fan)
+    before = torch.cat([impedance[:, :, :1], impedance[:, :, :-1]], 2)
+    # Intensity reflection coefficient of the impedance change along the beam between consecutive samples.
+    reflection = ((impedance - before) / (impedance + before)) ** 2
+    transmitted = torch.cumprod(1.0 - reflection, 2)
+    transmitted = torch.cat([torch.ones_like(transmitted[:, :, :1]), transmitted[:, :, :-1]], 2)
+    bone = ((ct_fan - config.bone_level) / (1.0 - config.bone_level)).clamp(0.0, 1.0)
+    absorption = (config.attenuation * ct_fan + config.bone_attenuation * bone) * step.reshape(-1, 1, 1, 1, 1)
+    optical_depth = torch.cumsum(absorption, 2) - absorption
+    # Round trip: an echo from range r crosses every interface and absorber before r on its way in and out.
+    two_way = (transmitted * torch.exp(-optical_depth)) ** 2
+    echo = two_way * (config.reflection_gain * reflection + config.scatter_gain * ct_fan)
+    return echo / echo.flatten(1).amax(-1).clamp_min(torch.finfo(echo.dtype).tiny).reshape(-1, 1, 1, 1, 1)
+
+
+def simulated_ultrasound(ct: Tensor, generator: torch.Generator, *, probe: Tensor | None = None,
+                         config: UltrasoundConfig = UltrasoundConfig()) -> tuple[Tensor, Tensor]:
+    """A 3-D ultrasound volume of the anatomy of a CT-like volume, on the same grid.
+
+    A probe at an apex outside the object sends beams into a cone around its direction. Along each beam: specular
+    echoes where the acoustic impedance (monotonic in the CT value) changes, diffuse backscatter from tissue, loss of
+    transmission behind every reflector (cumulative product: shadows behind bone and air), absorption rising with depth
+    and strongly in bone; then multiplicative Rayleigh speckle of mean 1. Nothing outside the cone.
+
+    Args:
+        ct: ``(B, 1, N, N, N)`` intensities in ``[0, 1]``, bone brightest, 0 outside the object (a CT window, or a
+            pseudo-CT on its solver grid).
+        generator: source of randomness (any device; draws are moved to ``ct``'s).
+        probe: ``(3,)`` or ``(B, 3)`` beam directions ``(x, y, z)`` (normalised here); uniform on the sphere if None.
+        config: field of view and acoustics.
+
+    Returns:
+        ``(ultrasound, fov_mask)``, both ``(B, 1, N, N, N)`` with ``ct``'s device and dtype: echoes in ``[0, 1]``
+        (brightest echo 1 before speckle, clipped after), and 1 inside the cone of view, 0 outside (where the
+        ultrasound is 0).
+
+    Raises:
+        InputError: ``ct`` is not a cubic batch, a volume is empty, or ``probe`` is malformed.
+
+    Convention:
+        Voxel coordinates ``(x, y, z)`` from the grid centre, as in :mod:`dpcn_med.geometry`. The apex sits on the
+        line along the probe direction through the object's centroid, ``config.standoff * N`` before its first voxel.
+        The beams are sampled on a fan of ``N`` ranges times ``N x N`` directions (lateral resolution coarsens with
+        depth, as with a real probe) and the echoes are resampled back onto the grid.
+    """
+    size = check_volumes("ct", ct, cubic=True)
+    check_range("half_angle_degrees", config.half_angle_degrees, 0.0, 89.0)
+    check_range("depth_range", config.depth_range, 0.0, math.inf)
+    foreground = ct[:, 0] > 0
+    if not bool(foreground.flatten(1).any(-1).all()):
+        raise InputError("ct contains an empty volume (no voxel above 0); the probe needs an object to image")
+    batch = ct.shape[0]
+    direction = _probe_directions(probe, batch, generator, ct)
+    across, up = _lateral_axes(direction)
+    tan_half = torch.tan(torch.deg2rad(uniform(generator, (batch,), *config.half_angle_degrees, like=ct)))
+    reach = (config.standoff + uniform(generator, (batch,), *config.depth_range, like=ct)) * size
+
+    points = affine_points((size,) * 3, torch.eye(3, device=ct.device, dtype=ct.dtype)[None])  # (1, N, N, N, 3)
+    weights = foreground.to(ct.dtype)[..., None]
+    centroid = (points * weights).sum((1, 2, 3)) / weights.sum((1, 2, 3))
+    along = (points * direction[:, None, None, None]).sum(-1)
+    entry = torch.where(foreground, along, math.inf).flatten(1).amin(-1)
+    lateral = centroid - (centroid * direction).sum(-1, keepdim=True) * direction
+    apex = lateral + (entry - config.standoff * size)[:, None] * direction
+
+    # The fan: range along torch axis D, tangents of the beam's angle along H (up) and W (across).
+    ticks = torch.linspace(0.0, 1.0, size, device=ct.device, dtype=ct.dtype)
+    ranges = reach[:, None] * ticks
+    tangents = tan_half[:, None] * (2.0 * ticks - 1.0)
+    beams = (direction[:, None, None] + tangents[:, None, :, None] * across[:, None, None]
+             + tangents[:, :, None, None] * up[:, None, None])
+    beams = beams / beams.norm(dim=-1, keepdim=True)
+    fan_points = apex[:, None, None, None] + ranges[:, :, None, None, None] * beams[:, None]
+    echoes = _echoes(sample(ct, fan_points), reach / ((size - 1) * size), config)
+
+    # Back onto the grid: each voxel's range and tangents in the fan.
+    offset = points - apex[:, None, None, None]
+    axial = (offset * direction[:, None, None, None]).sum(-1)
+    safe_axial = torch.where(axial > 0, axial, 1.0)
+    tangent_across = (offset * across[:, None, None, None]).sum(-1) / safe_axial
+    tangent_up = (offset * up[:, None, None, None]).sum(-1) / safe_axial
+    distance = offset.norm(dim=-1)
+    per_sample = (-1, 1, 1, 1)
+    inside = ((axial > 0) & (tangent_across ** 2 + tangent_up ** 2 <= tan_half.reshape(per_sample) ** 2)
+              & (distance <= reach.reshape(per_sample)))
+    centre = grid_centre(size)
+    fan_index = torch.stack([(tangent_across / tan_half.reshape(per_sample) + 1.0) * (size - 1) / 2 - centre,
+                             (tangent_up / tan_half.reshape(per_sample) + 1.0) * (size - 1) / 2 - centre,
+                             distance / reach.reshape(per_sample) * (size - 1) - centre], -1)
+    fov_mask = inside.to(ct.dtype)[:, None]
+    rayleigh = math.sqrt(2.0 / math.pi) * torch.hypot(normal(generator, tuple(ct.shape), like=ct),
+                                                      normal(generator, tuple(ct.shape), like=ct))
+    return (sample(echoes, fan_index) * fov_mask * rayleigh).clamp(0.0, 1.0), fov_mask
