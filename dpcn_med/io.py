@@ -595,6 +595,66 @@ def write_text(text: str, path: str | os.PathLike) -> None:
         stream.write(text)
 
 
+# --------------------------------------------------------------------------------------------- tensors and JSON
+PICKLE_SUFFIXES = (".pt", ".pth", ".ckpt", ".pkl", ".pickle", ".bin")
+"""Suffixes of pickled tensors, which are refused: unpickling a file can run arbitrary code."""
+
+
+def write_tensors(tensors: dict[str, Any], path: str | os.PathLike, *, metadata: dict[str, str] | None = None
+                  ) -> None:
+    """Write named tensors as one ``.safetensors`` file, atomically (CPU copies; shared storage written once each).
+
+    Raises:
+        InputError: ``path`` does not end in ``.safetensors``, or its folder does not exist.
+    """
+    from safetensors.torch import save_file
+
+    if not os.fspath(path).endswith(".safetensors"):
+        raise InputError(f"{path}: tensors are written as .safetensors")
+    plain = {name: tensor.detach().cpu().contiguous().clone() for name, tensor in tensors.items()}
+    with atomic_output(path) as staged:
+        save_file(plain, str(staged), metadata=metadata)
+
+
+def read_tensors(path: str | os.PathLike) -> dict[str, Any]:
+    """Named CPU tensors from a ``.safetensors`` file.
+
+    Raises:
+        InputNotFoundError: the file is missing.
+        InputError: a pickled file (refused), or not readable as safetensors.
+    """
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    name = os.fspath(path)
+    if name.lower().endswith(PICKLE_SUFFIXES):
+        raise InputError(f"{name}: a pickled file; dpcn_med only reads .safetensors (unpickling a file can run "
+                         "arbitrary code)")
+    if not os.path.isfile(name):
+        raise InputNotFoundError(f"{name}: not found (no such file); check the path")
+    try:
+        return load_file(name)
+    except (SafetensorError, OSError, ValueError) as error:
+        raise InputError(f"{name}: not a readable .safetensors file ({error})") from None
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """The content of a JSON file.
+
+    Raises:
+        InputNotFoundError: the file is missing.
+        InputError: not UTF-8 JSON.
+    """
+    name = os.fspath(path)
+    if not os.path.isfile(name):
+        raise InputNotFoundError(f"{name}: not found (no such file); check the path")
+    try:
+        with open(name, encoding="utf-8") as stream:
+            return json.load(stream)
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise InputError(f"{name}: not a JSON file ({error})") from None
+
+
 # ----------------------------------------------------------------------------------------------------------- meshes
 def is_mesh_path(path: str | os.PathLike) -> bool:
     """Whether ``path`` names a surface mesh or point cloud (by suffix, see :data:`MESH_SUFFIXES`)."""

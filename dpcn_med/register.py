@@ -85,6 +85,7 @@ class RegistrationResult:
         timings: wall-clock seconds per step (``read``, ``preprocess``, ``solve``, ``refine``, ``resample``) and
             per solver stage (``solver.*``).
         device: the torch device the solver ran on.
+        model: ``"learning-free"`` or the path of the learned model used.
         fixed_image: the fixed input as read.
         moving_image: the moving input as read.
         resampled: the moving image on the fixed grid, when asked for.
@@ -103,6 +104,7 @@ class RegistrationResult:
     refined: bool
     timings: dict[str, float] = field(default_factory=dict)
     device: str = "cpu"
+    model: str = "learning-free"
     fixed_image: sitk.Image | None = None
     moving_image: sitk.Image | None = None
     resampled: sitk.Image | None = None
@@ -110,7 +112,7 @@ class RegistrationResult:
     def to_dict(self) -> dict:
         """JSON-ready summary: both estimates as 4x4 matrices and parameters, confidence, metric, timings."""
         return {
-            "mode": self.mode, "bandwidth": self.bandwidth, "device": self.device,
+            "mode": self.mode, "bandwidth": self.bandwidth, "device": self.device, "model": self.model,
             "confidence": self.confidence, "modalities": {"fixed": self.modalities[0], "moving": self.modalities[1]},
             "canonical_grid": {"size": self.fixed_grid.size, "spacing_mm": self.fixed_grid.spacing,
                                "fixed_centre_lps": list(self.fixed_grid.centre),
@@ -167,11 +169,27 @@ def _load_mask(source: ImageLike | None, image: sitk.Image) -> sitk.Image | None
     return io.read_mask(source, image)
 
 
-def check_model(model: str | os.PathLike | None) -> None:
-    """Only the learning-free solver exists in this release; say so clearly for anything else."""
-    if model is not None and str(model).lower() not in ("none", "learning-free"):
-        raise InputError(f"model {str(model)!r}: learned feature extractors are not part of dpcn_med yet; use "
-                         "model=None (the learning-free solver, --model none)")
+LEARNING_FREE = ("none", "learning-free")
+"""Names of the learning-free solver for ``model`` (as is ``None``)."""
+
+
+def load_feature_model(model: str | os.PathLike | None, bandwidth: int, device: torch.device):
+    """The learned model named by ``model`` (a path to ``NAME.safetensors`` / ``NAME.json`` / ``NAME``) on
+    ``device``, or ``None`` for the learning-free solver.
+
+    Raises:
+        InputNotFoundError: the model's files are missing.
+        InputError: not a dpcn_med model, or trained at another bandwidth than ``bandwidth``.
+    """
+    if model is None or str(model).lower() in LEARNING_FREE:
+        return None
+    from dpcn_med.models import load_model
+
+    network = load_model(model, device=device)
+    if network.config.bandwidth != bandwidth:
+        raise InputError(f"{model}: this model was trained at bandwidth {network.config.bandwidth}; register with "
+                         f"bandwidth={network.config.bandwidth} (--bandwidth {network.config.bandwidth})")
+    return network
 
 
 def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model: str | os.PathLike | None = None,
@@ -187,7 +205,8 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
             in LPS) or a SimpleITK image.
         moving: the volume to align, same kinds.
         mode: ``"rigid"`` (6 DoF) or ``"similarity"`` (7 DoF, isotropic scale).
-        model: ``None`` for the learning-free solver (the only one in this release).
+        model: ``None`` (or ``"none"``) for the learning-free solver, or the path of a model trained with
+            ``dpcn-med train`` (its learned features replace the intensities; its bandwidth must be ``bandwidth``).
         bandwidth: solver bandwidth ``B``; grids are ``(2B)^3`` (32: fast on a CPU; 64: finer before refinement).
         refine: polish the global estimate with multi-resolution Mattes mutual information.
         device: ``"auto"``, ``"cpu"``, ``"cuda"`` or ``"cuda:N"`` for the solver.
@@ -211,12 +230,12 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
     preprocessing = preprocessing or Preprocessing()
     refinement = refinement or Refinement()
     mode = check_mode(mode)
-    check_model(model)
     check_bandwidth(bandwidth, 2 * MAX_BANDWIDTH)  # before any work: the grids will be (2B)^3
     for name, value in (("fixed_modality", fixed_modality), ("moving_modality", moving_modality)):
         if value not in MODALITIES:
             raise InputError(f"{name} {value!r} is not supported; use one of {', '.join(MODALITIES)}")
     torch_device = resolve_device(device)
+    network = load_feature_model(model, bandwidth, torch_device)
     timings: dict[str, float] = {}
 
     start = time.perf_counter()
@@ -237,9 +256,13 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
 
     start = time.perf_counter()
     report("solving", 0.3)
-    solution = solve(fixed_tensor, moving_tensor, mode, bandwidth=bandwidth, profile=True)
+    if network is None:
+        solution = solve(fixed_tensor, moving_tensor, mode, bandwidth=bandwidth, profile=True)
+        timings.update({f"solver.{stage}": seconds for stage, seconds in solution.timings.items()})
+    else:
+        with torch.no_grad():
+            solution = network(fixed_tensor, moving_tensor, mode=mode)
     timings["solve"] = time.perf_counter() - start
-    timings.update({f"solver.{stage}": seconds for stage, seconds in solution.timings.items()})
     scale = float(solution.scale[0]) if mode == "similarity" else None
     dpc = physical_transform(solution.rotation[0], scale, solution.translation[0], fixed_grid, moving_grid)
 
@@ -276,7 +299,8 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         fixed_to_moving=final, moving_to_fixed=final.GetInverse(), dpc_transform=dpc,
         confidence=float(solution.confidence[0]), mode=mode, bandwidth=bandwidth, fixed_grid=fixed_grid,
         moving_grid=moving_grid, modalities=(fixed_prepared.modality, moving_prepared.modality), metric=metric,
-        refined=refined, timings=timings, device=str(torch_device), fixed_image=fixed_image,
+        refined=refined, timings=timings, device=str(torch_device),
+        model="learning-free" if network is None else os.fspath(model), fixed_image=fixed_image,
         moving_image=moving_image, resampled=resampled)
 
 

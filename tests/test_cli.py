@@ -201,9 +201,11 @@ class TestBadInput:
         err = capsys.readouterr().err
         assert code == 2 and str(mask) in err and not (tmp_path / "o").exists()
 
-    def test_learned_model_option(self, pair, tmp_path, capsys):
-        code = main(["register", str(pair[0]), str(pair[1]), "--model", "default", "-o", str(tmp_path / "o")])
-        assert code == 2 and "learning-free" in capsys.readouterr().err
+    def test_missing_model_file(self, pair, tmp_path, capsys):
+        code = main(["register", str(pair[0]), str(pair[1]), "--model", str(tmp_path / "ct_mr"), "-o",
+                     str(tmp_path / "o")])
+        assert code == 2 and "ct_mr.json: not found" in capsys.readouterr().err
+        assert not (tmp_path / "o").exists()
 
 
 def _write_dicom_series(folder: Path, series_uid: str, offset: int) -> None:

@@ -572,3 +572,39 @@ class TestImageSummary:
     def test_identity_direction_is_lps(self, volume):
         volume.SetDirection((1, 0, 0, 0, 1, 0, 0, 0, 1))
         assert io.image_summary(volume)["orientation"] == "LPS"
+
+
+class TestTensors:
+    def test_round_trip_and_atomic(self, tmp_path):
+        import torch
+
+        tensors = {"a": torch.arange(6.0).reshape(2, 3), "b": torch.ones(4, dtype=torch.int64)}
+        io.write_tensors(tensors, tmp_path / "t.safetensors", metadata={"format": "x"})
+        read = io.read_tensors(tmp_path / "t.safetensors")
+        assert set(read) == {"a", "b"} and all(torch.equal(read[k], tensors[k]) for k in tensors)
+        assert [p.name for p in tmp_path.iterdir()] == ["t.safetensors"]
+
+    def test_refuses_pickles_and_garbage(self, tmp_path):
+        import torch
+
+        torch.save({"a": torch.zeros(1)}, tmp_path / "w.pt")
+        with pytest.raises(InputError, match=r"w\.pt: a pickled file; dpcn_med only reads \.safetensors"):
+            io.read_tensors(tmp_path / "w.pt")
+        (tmp_path / "g.safetensors").write_bytes(b"\x00" * 40)
+        with pytest.raises(InputError, match=r"g\.safetensors: not a readable \.safetensors file"):
+            io.read_tensors(tmp_path / "g.safetensors")
+        with pytest.raises(InputNotFoundError, match=r"none\.safetensors: not found"):
+            io.read_tensors(tmp_path / "none.safetensors")
+        with pytest.raises(InputError, match=r"x\.npy: tensors are written as \.safetensors"):
+            io.write_tensors({}, tmp_path / "x.npy")
+
+
+class TestReadJson:
+    def test_reads_and_names_the_problem(self, tmp_path):
+        (tmp_path / "a.json").write_text('{"k": [1, 2]}')
+        assert io.read_json(tmp_path / "a.json") == {"k": [1, 2]}
+        (tmp_path / "b.json").write_text("{not json")
+        with pytest.raises(InputError, match=r"b\.json: not a JSON file"):
+            io.read_json(tmp_path / "b.json")
+        with pytest.raises(InputNotFoundError, match=r"c\.json: not found"):
+            io.read_json(tmp_path / "c.json")

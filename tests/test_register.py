@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from dpcn_med.errors import InputError
+from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.geometry import homogeneous_matrix
+from dpcn_med.models import DPCN, ModelConfig, save_model
 from dpcn_med.preprocess import foreground_box
 from dpcn_med.register import RegistrationResult, register, resolve_device
 from dpcn_med.samples import mni152_t1
@@ -102,6 +103,24 @@ class TestResult:
         assert result.fixed_to_moving is result.dpc_transform
 
 
+class TestLearnedModel:
+    def test_a_model_file_registers_and_is_reported(self, tmp_path):
+        """An untrained model is the learning-free solver with its UNets at zero gain: through a file it must give
+        the same registration, and the result names the model."""
+        save_model(DPCN(ModelConfig(bandwidth=16, channels=(4, 8, 16), residual_units=0)), tmp_path / "untrained")
+        fixed = mni_2mm()
+        truth = random_similarity(np.random.default_rng(4), foreground_box(fixed)[0])
+        moving = moved_copy(fixed, truth)
+        learned = register(fixed, moving, model=tmp_path / "untrained.safetensors", bandwidth=16)
+        assert learned.model == str(tmp_path / "untrained.safetensors") and learned.to_dict()["model"] == learned.model
+        assert target_registration_error(learned.fixed_to_moving, truth, foreground_corners(fixed)) < 1.0
+        plain = register(fixed, moving, bandwidth=16, refine=False)
+        np.testing.assert_allclose(homogeneous_matrix(register(fixed, moving, model=tmp_path / "untrained",
+                                                               bandwidth=16, refine=False).dpc_transform),
+                                   homogeneous_matrix(plain.dpc_transform), atol=1e-3)
+        assert plain.model == "learning-free"
+
+
 class TestMasks:
     def test_fixed_mask_restricts_what_is_registered(self):
         fixed = mni_2mm()
@@ -143,9 +162,14 @@ class TestErrors:
         with pytest.raises(InputError, match="mode 'affine' is not supported"):
             register(mni_2mm(), mni_2mm(), mode="affine")
 
-    def test_learned_model_not_available(self):
-        with pytest.raises(InputError, match="learned feature extractors are not part of dpcn_med yet"):
-            register(mni_2mm(), mni_2mm(), model="default")
+    def test_missing_model_files(self, tmp_path):
+        with pytest.raises(InputNotFoundError, match=r"ct_mr\.json: not found"):
+            register(mni_2mm(), mni_2mm(), model=tmp_path / "ct_mr")
+
+    def test_model_trained_at_another_bandwidth(self, tmp_path):
+        save_model(DPCN(ModelConfig(bandwidth=16, channels=(4, 8))), tmp_path / "b16")
+        with pytest.raises(InputError, match="trained at bandwidth 16; register with bandwidth=16"):
+            register(mni_2mm(), mni_2mm(), model=tmp_path / "b16", bandwidth=32)
 
     @pytest.mark.parametrize("bandwidth", [0, 3, 129])
     def test_bandwidth_out_of_range(self, bandwidth):

@@ -12,6 +12,7 @@ from torch import Tensor
 from dpcn_med.geometry import geodesic_distance, grid_centre
 from dpcn_med.solver.so3 import euler_grid, grid_rotations
 from dpcn_med.solver.solve3d import SolveResult
+from dpcn_med.solver.translation import TranslationEstimate
 
 
 @dataclass(frozen=True)
@@ -112,13 +113,19 @@ class PoseTarget:
     translation: Tensor
 
 
-def pose_loss(result: SolveResult, target: PoseTarget, weights: LossWeights | None = None) -> dict[str, Tensor]:
+def pose_loss(result: SolveResult, target: PoseTarget, weights: LossWeights | None = None, *,
+              translation: TranslationEstimate | None = None, compensation: Tensor | None = None
+              ) -> dict[str, Tensor]:
     """The six DPCN++ terms and their weighted sum for a batch solved with ``refine=False``.
 
     Args:
         result: from :func:`dpcn_med.solver.solve` (soft arg-max, so the L1 terms carry gradients).
         target: the true pose.
         weights: term weights and target widths.
+        translation: a translation stage measured outside ``result`` (the learned model runs it on its own
+            features); defaults to ``result.translation_estimate``.
+        compensation: ``(batch, 3, 3)`` the ``scale * rotation`` that compensated the moving volume before that
+            stage; defaults to ``result``'s estimate.
 
     Returns:
         ``{"rotation_kl", "rotation_l1", "translation_kl", "translation_l1", "scale_kl", "scale_l1", "total"}``, each
@@ -133,9 +140,9 @@ def pose_loss(result: SolveResult, target: PoseTarget, weights: LossWeights | No
         "rotation_kl": rotation_kl(result.rotation_log_prob, target.rotation, weights.rotation_sigma),
         "rotation_l1": geodesic_distance(result.rotation, target.rotation.to(result.rotation.dtype)),
     }
-    linear = (result.scale[:, None, None] * result.rotation).detach()
+    linear = (result.scale[:, None, None] * result.rotation if compensation is None else compensation).detach()
     true_shift = torch.linalg.solve(linear, target.translation[..., None].to(linear.dtype))[..., 0]
-    estimate = result.translation_estimate
+    estimate = result.translation_estimate if translation is None else translation
     terms["translation_kl"] = shift_kl(estimate.peak.log_prob, true_shift, weights.shift_sigma)
     terms["translation_l1"] = (estimate.shift - true_shift).abs().sum(-1)
     if result.scale_estimate is not None:

@@ -1,0 +1,180 @@
+"""The DPCN++ network: four feature extractors around the differentiable solver (DESIGN 3).
+
+``{fixed, moving} x {rotation-scale stage, translation stage}``: the rotation-scale features go through the solver's
+spectrum, sphere, SO(3) and log-radius stages; the translation features are computed on the fixed volume and on the
+moving volume compensated by ``scale * rotation`` (the ground truth plus noise while training, so the translation
+networks learn on well-compensated pairs from the first step; the estimate at inference), then phase-correlated.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+
+import torch
+from torch import Tensor, nn
+
+from dpcn_med import __version__
+from dpcn_med.errors import InputError
+from dpcn_med.geometry import axis_angle_to_matrix, warp
+from dpcn_med.models.features import FeatureExtractor
+from dpcn_med.solver import LossWeights, PoseTarget, SolverConfig, SolveResult, StageTemperatures, Temperatures, solve
+from dpcn_med.solver import pose_loss as solver_pose_loss
+from dpcn_med.solver.translation import TranslationEstimate, phase_translation
+from dpcn_med.solver.validation import check_mode
+
+MODALITIES = ("ct", "mr", "us")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """What a model is; saved beside its weights (:mod:`dpcn_med.models.weights`).
+
+    Attributes:
+        bandwidth: solver bandwidth ``B``; inputs are ``(2B)^3`` grids.
+        channels: UNet channels per level (``len - 1`` downsamplings, so ``2B`` must be divisible by
+            ``2 ** (len - 1)``).
+        residual_units: MONAI's ``num_res_units`` per level.
+        modalities: ``(fixed, moving)`` modalities the networks were trained for, each ``ct``, ``mr`` or ``us``.
+        share_weights: one extractor per stage for both inputs (for same-modality pairs).
+        mode: ``similarity`` (7 DoF) or ``rigid`` (6 DoF).
+        compensation_noise_degrees: training only: the rotation compensating the moving volume before the
+            translation stage is the truth turned by an angle of this standard deviation about a random axis...
+        compensation_noise_scale: ...and its scale the truth times ``exp(N(0, this))``.
+        temperatures: initial softmax temperatures ``(rotation, scale, translation)`` (learned afterwards).
+        preprocessing: the :class:`dpcn_med.preprocess.Preprocessing` fields the training grids were made with.
+        version: dpcn_med version that made the model.
+    """
+
+    bandwidth: int = 32
+    channels: tuple[int, ...] = (8, 16, 32, 64)
+    residual_units: int = 1
+    modalities: tuple[str, str] = ("ct", "mr")
+    share_weights: bool = False
+    mode: str = "similarity"
+    compensation_noise_degrees: float = 2.0
+    compensation_noise_scale: float = 0.02
+    temperatures: tuple[float, float, float] = (StageTemperatures.rotation, StageTemperatures.scale,
+                                                StageTemperatures.translation)
+    preprocessing: dict = field(default_factory=dict)
+    version: str = __version__
+
+    def __post_init__(self) -> None:
+        check_mode(self.mode)
+        if any(m not in MODALITIES for m in self.modalities) or len(self.modalities) != 2:
+            raise InputError(f"modalities {self.modalities!r}: expected two of {', '.join(MODALITIES)}")
+        if len(self.channels) < 2 or (2 * self.bandwidth) % 2 ** (len(self.channels) - 1):
+            raise InputError(f"channels {self.channels!r}: need at least two levels, and the grid size "
+                             f"{2 * self.bandwidth} must be divisible by 2^{len(self.channels) - 1}")
+
+    def to_json(self) -> dict:
+        """Plain JSON types (tuples become lists)."""
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, values: dict) -> ModelConfig:
+        """Inverse of :meth:`to_json`; unknown keys are refused (a file from another program or version)."""
+        known = {f.name: f for f in fields(cls)}
+        unknown = set(values) - set(known)
+        if unknown:
+            raise InputError(f"model config has unknown keys {sorted(unknown)}")
+        converted = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+        return cls(**converted)
+
+
+@dataclass
+class DPCNOutput:
+    """The pose ``fixed(p) ~ moving(scale * rotation @ p + translation)`` and what the losses need.
+
+    Attributes:
+        rotation: ``(B, 3, 3)``.
+        scale: ``(B,)``.
+        translation: ``(B, 3)`` voxels ``(x, y, z)``.
+        confidence: ``(B,)`` softmax mass of the translation peak.
+        stage: the solver's rotation-scale result on the rotation-scale features.
+        translation_estimate: the translation stage on the translation features.
+        compensation: ``(B, 3, 3)`` the ``scale * rotation`` the moving volume was compensated by before it.
+    """
+
+    rotation: Tensor
+    scale: Tensor
+    translation: Tensor
+    confidence: Tensor
+    stage: SolveResult
+    translation_estimate: TranslationEstimate
+    compensation: Tensor
+
+
+class DPCN(nn.Module):
+    """DPCN++ for one pair of modalities; ``model(fixed, moving)`` registers ``(B, 1, 2B, 2B, 2B)`` grids."""
+
+    def __init__(self, config: ModelConfig | None = None) -> None:
+        super().__init__()
+        self.config = config = config or ModelConfig()
+
+        def extractor() -> FeatureExtractor:
+            return FeatureExtractor(config.channels, config.residual_units)
+
+        self.rotation_fixed, self.translation_fixed = extractor(), extractor()
+        if config.share_weights:
+            self.rotation_moving, self.translation_moving = self.rotation_fixed, self.translation_fixed
+        else:
+            self.rotation_moving, self.translation_moving = extractor(), extractor()
+        self.temperatures = Temperatures(StageTemperatures(*config.temperatures))
+        self.solver = SolverConfig(bandwidth=config.bandwidth)
+
+    def forward(self, fixed: Tensor, moving: Tensor, target: PoseTarget | None = None,
+                generator: torch.Generator | None = None, mode: str | None = None) -> DPCNOutput:
+        """Register ``moving`` onto ``fixed``.
+
+        Args:
+            fixed, moving: ``(B, 1, 2B, 2B, 2B)`` canonical grids, normalised intensities.
+            target: the true pose; in training mode it (plus noise) compensates the translation stage's input.
+            generator: for the compensation noise (reproducible training).
+            mode: ``rigid`` or ``similarity``; defaults to the mode the model was trained in.
+
+        Returns:
+            A :class:`DPCNOutput`. In training mode every estimate is a soft arg-max (differentiable); in eval mode
+            the solver's arg-max with sub-grid refinement.
+        """
+        size = 2 * self.config.bandwidth
+        if fixed.shape[-3:] != (size,) * 3 or moving.shape != fixed.shape:
+            raise InputError(f"grids {tuple(fixed.shape)} and {tuple(moving.shape)}: this model takes "
+                             f"(B, 1, {size}, {size}, {size}) pairs (bandwidth {self.config.bandwidth})")
+        temperatures = self.temperatures()
+        refine = not self.training
+        mode = check_mode(mode or self.config.mode)
+        stage = solve(self.rotation_fixed(fixed), self.rotation_moving(moving), mode, config=self.solver,
+                      temperatures=temperatures, refine=refine)
+        if self.training and target is not None:
+            compensation = self._noisy(target, generator, rigid=mode == "rigid").to(fixed.dtype)
+        else:
+            compensation = (stage.scale[:, None, None] * stage.rotation).detach()
+        compensated = warp(moving, compensation)
+        estimate = phase_translation(self.translation_fixed(fixed)[:, 0], self.translation_moving(compensated)[:, 0],
+                                     temperatures.translation, dim=3, taper=self.solver.taper, refine=refine,
+                                     upsample=self.solver.upsample)
+        translation = (compensation @ estimate.shift[..., None])[..., 0]
+        return DPCNOutput(rotation=stage.rotation, scale=stage.scale, translation=translation,
+                          confidence=estimate.peak.mass, stage=stage, translation_estimate=estimate,
+                          compensation=compensation)
+
+    def _noisy(self, target: PoseTarget, generator: torch.Generator | None, rigid: bool) -> Tensor:
+        """``(B, 3, 3)``: the true ``scale * rotation``, turned and scaled a little at random."""
+        batch = target.rotation.shape[0]
+        options = {"generator": generator, "dtype": torch.float64}
+        axis = torch.randn(batch, 3, **options)
+        angle = torch.randn(batch, 1, **options) * math.radians(self.config.compensation_noise_degrees)
+        turn = axis_angle_to_matrix(axis / axis.norm(dim=-1, keepdim=True) * angle).to(target.rotation.device)
+        scale = target.scale.double() * torch.exp(torch.randn(batch, **options).to(target.scale.device)
+                                                  * self.config.compensation_noise_scale)
+        if rigid:
+            scale = torch.ones_like(scale)
+        return scale[:, None, None] * (turn @ target.rotation.double())
+
+
+def pose_loss(output: DPCNOutput, target: PoseTarget, weights: LossWeights | None = None) -> dict[str, Tensor]:
+    """The six DPCN++ terms (:func:`dpcn_med.solver.pose_loss`) with the translation terms on the model's own
+    translation stage; ``"total"`` is their weighted sum."""
+    return solver_pose_loss(output.stage, target, weights, translation=output.translation_estimate,
+                            compensation=output.compensation)

@@ -1,0 +1,72 @@
+"""Saving and loading models: tensors as safetensors, the :class:`ModelConfig` as JSON beside them.
+
+Never pickle: ``torch.load`` of a downloaded file can run arbitrary code, so a model is two plain files,
+``NAME.safetensors`` and ``NAME.json``, and a pickled checkpoint is refused (:func:`dpcn_med.io.read_tensors`).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from dpcn_med import io
+from dpcn_med.errors import InputError
+from dpcn_med.models.dpcn import DPCN, ModelConfig
+
+FORMAT = "dpcn_med.model/1"
+"""The JSON's ``format`` key: what wrote it and how."""
+
+
+def model_paths(path: str | os.PathLike) -> tuple[Path, Path]:
+    """``(weights, config)`` for ``NAME``, ``NAME.safetensors`` or ``NAME.json``."""
+    path = Path(path)
+    stem = path.with_suffix("") if path.suffix in (".safetensors", ".json") else path
+    return stem.with_name(stem.name + ".safetensors"), stem.with_name(stem.name + ".json")
+
+
+def unique_state(model: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """The state dict with each tensor once: shared extractors would otherwise appear under two names."""
+    tensors, seen = {}, set()
+    for name, tensor in model.state_dict().items():
+        if tensor.data_ptr() not in seen:
+            seen.add(tensor.data_ptr())
+            tensors[name] = tensor
+    return tensors
+
+
+def save_model(model: DPCN, path: str | os.PathLike, *, record: dict | None = None) -> tuple[Path, Path]:
+    """Write ``NAME.safetensors`` and ``NAME.json`` (the config and an optional training ``record``), atomically.
+
+    Returns:
+        The two paths.
+    """
+    weights, config = model_paths(path)
+    io.write_tensors(unique_state(model), weights, metadata={"format": FORMAT})
+    io.write_json({"format": FORMAT, "config": model.config.to_json(), "record": record or {}}, config)
+    return weights, config
+
+
+def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -> DPCN:
+    """A model saved by :func:`save_model`, in eval mode on ``device``.
+
+    Raises:
+        InputNotFoundError: either file is missing.
+        InputError: a pickled checkpoint, a config from something else, or weights that do not fit the config.
+    """
+    if os.fspath(path).lower().endswith(io.PICKLE_SUFFIXES):
+        io.read_tensors(path)  # raises its message about pickles
+    weights, config = model_paths(path)
+    description = io.read_json(config)
+    if not isinstance(description, dict) or description.get("format") != FORMAT:
+        raise InputError(f"{config}: not a dpcn_med model config (format {FORMAT!r} expected)")
+    model = DPCN(ModelConfig.from_json(description["config"]))
+    tensors = io.read_tensors(weights)
+    expected = unique_state(model)
+    if set(tensors) != set(expected) or any(tensors[k].shape != v.shape for k, v in expected.items()):
+        missing, unexpected = sorted(set(expected) - set(tensors)), sorted(set(tensors) - set(expected))
+        raise InputError(f"{weights}: does not fit {config.name} (missing {missing[:3]}, unexpected {unexpected[:3]}"
+                         ", or other shapes)")
+    model.load_state_dict({**model.state_dict(), **tensors})
+    return model.to(device).eval()

@@ -1,0 +1,162 @@
+"""dpcn_med.models: the DPCN++ network (starts as the learning-free solver, trains end to end) and its weights."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from dpcn_med.errors import InputError, InputNotFoundError
+from dpcn_med.geometry import geodesic_distance
+from dpcn_med.models import DPCN, FeatureExtractor, ModelConfig, load_model, model_paths, pose_loss, save_model
+from dpcn_med.solver import PoseTarget, solve
+from dpcn_med.synth import random_poses
+from tests.conftest import volume_grid
+
+TINY = ModelConfig(bandwidth=8, channels=(4, 8, 16), residual_units=0)
+
+
+def pairs(size: int, count: int, seed: int, mode: str = "similarity") -> tuple[torch.Tensor, torch.Tensor, PoseTarget]:
+    """The MNI template on a ``size^3`` grid and moved copies with known poses (small shifts, all of SO(3))."""
+    base = volume_grid("mni", size)
+    poses = random_poses(count, size, seed, similarity=mode == "similarity", scale_range=(0.9, 1.1),
+                         max_shift=0.1 * size)
+    moving = torch.cat([pose.moving_from(base) for pose in poses])
+    target = PoseTarget(torch.stack([p.rotation for p in poses]).float(), torch.tensor([p.scale for p in poses]),
+                        torch.stack([p.translation for p in poses]).float())
+    return base.expand(count, -1, -1, -1, -1), moving, target
+
+
+class TestModelConfig:
+    def test_json_round_trip(self):
+        config = ModelConfig(bandwidth=16, channels=(4, 8), modalities=("us", "ct"), share_weights=True)
+        assert ModelConfig.from_json(json.loads(json.dumps(config.to_json()))) == config
+
+    @pytest.mark.parametrize(("options", "message"), [
+        ({"modalities": ("ct", "pet")}, "modalities .* expected two of ct, mr, us"),
+        ({"channels": (8,)}, "need at least two levels"),
+        ({"bandwidth": 6, "channels": (4, 8, 16, 32)}, "grid size 12 must be divisible by 2\\^3"),
+        ({"mode": "affine"}, "affine"),
+    ])
+    def test_refuses_bad_values(self, options, message):
+        with pytest.raises(InputError, match=message):
+            ModelConfig(**options)
+
+    def test_unknown_keys_refused(self):
+        with pytest.raises(InputError, match="unknown keys \\['learning_rate'\\]"):
+            ModelConfig.from_json({**TINY.to_json(), "learning_rate": 0.1})
+
+
+class TestFeatureExtractor:
+    def test_starts_as_the_identity_and_keeps_the_shape(self):
+        extractor = FeatureExtractor((4, 8), residual_units=0)
+        volume = torch.rand(2, 1, 16, 16, 16)
+        assert torch.equal(extractor(volume), volume)
+        with torch.no_grad():
+            extractor.gain.fill_(1.0)
+        assert extractor(volume).shape == volume.shape and not torch.equal(extractor(volume), volume)
+
+
+class TestDPCN:
+    def test_untrained_model_is_the_learning_free_solver(self):
+        fixed, moving, _ = pairs(16, 2, seed=3)
+        model = DPCN(TINY).eval()
+        with torch.no_grad():
+            output = model(fixed, moving)
+        reference = solve(fixed, moving, "similarity", bandwidth=8)
+        torch.testing.assert_close(output.rotation, reference.rotation)
+        torch.testing.assert_close(output.scale, reference.scale)
+        torch.testing.assert_close(output.translation, reference.translation, atol=1e-4, rtol=0)
+        torch.testing.assert_close(output.confidence, reference.confidence)
+
+    def test_training_compensates_with_the_noisy_truth(self):
+        fixed, moving, target = pairs(16, 2, seed=4, mode="rigid")
+        model = DPCN(ModelConfig(**{**TINY.to_json(), "mode": "rigid", "channels": (4, 8, 16)})).train()
+        output = model(fixed, moving, target, generator=torch.Generator().manual_seed(0))
+        angle = geodesic_distance(output.compensation.double(), target.rotation.double())
+        assert (angle > 0).all() and (angle < torch.deg2rad(torch.tensor(10.0))).all()  # noisy, near the truth
+        terms = pose_loss(output, target)
+        assert set(terms) == {"rotation_kl", "rotation_l1", "translation_kl", "translation_l1", "scale_kl",
+                              "scale_l1", "total"}
+        terms["total"].backward()
+        for extractor in (model.rotation_fixed, model.rotation_moving, model.translation_fixed,
+                          model.translation_moving):
+            assert extractor.gain.grad is not None and extractor.gain.grad != 0
+
+    def test_shared_weights(self):
+        model = DPCN(ModelConfig(**{**TINY.to_json(), "share_weights": True, "channels": (4, 8, 16)}))
+        assert model.rotation_moving is model.rotation_fixed and model.translation_moving is model.translation_fixed
+        assert sum(p.numel() for p in model.parameters()) < sum(p.numel() for p in DPCN(TINY).parameters())
+
+    def test_wrong_grid_refused(self):
+        with pytest.raises(InputError, match="this model takes \\(B, 1, 16, 16, 16\\) pairs"):
+            DPCN(TINY)(torch.rand(1, 1, 32, 32, 32), torch.rand(1, 1, 32, 32, 32))
+
+    def test_a_few_steps_lower_the_loss(self):
+        """A tiny model on a fixed batch of heterogeneous pairs (the moving image's contrast inverted): AdamW
+        lowers the pose loss within a few steps."""
+        torch.manual_seed(0)
+        fixed, moving, target = pairs(16, 8, seed=5)
+        moving = torch.where(moving > 0, 1.0 - moving, moving)  # bright becomes dark inside the head
+        model = DPCN(TINY).train()
+        optimiser = torch.optim.AdamW(model.parameters(), lr=3e-2)
+        losses = []
+        for step in range(8):
+            optimiser.zero_grad()
+            loss = pose_loss(model(fixed, moving, target, generator=torch.Generator().manual_seed(step)),
+                             target)["total"]
+            loss.backward()
+            optimiser.step()
+            losses.append(loss.item())
+        assert min(losses[-3:]) < 0.9 * losses[0], losses
+
+
+class TestWeights:
+    def test_round_trip_gives_the_same_registration(self, tmp_path):
+        model = DPCN(TINY)
+        with torch.no_grad():
+            for extractor in (model.rotation_fixed, model.translation_moving):
+                extractor.gain.fill_(0.5)
+        weights, config = save_model(model, tmp_path / "ct_mr", record={"steps": 3})
+        assert (weights.name, config.name) == ("ct_mr.safetensors", "ct_mr.json")
+        assert json.loads(config.read_text())["record"] == {"steps": 3}
+        loaded = load_model(weights)
+        assert not loaded.training and loaded.config == TINY
+        fixed, moving, _ = pairs(16, 1, seed=6)
+        with torch.no_grad():
+            torch.testing.assert_close(loaded(fixed, moving).translation, model.eval()(fixed, moving).translation)
+
+    def test_shared_extractors_are_stored_once(self, tmp_path):
+        from safetensors import safe_open
+
+        model = DPCN(ModelConfig(**{**TINY.to_json(), "share_weights": True, "channels": (4, 8, 16)}))
+        weights, _ = save_model(model, tmp_path / "mr_mr")
+        with safe_open(str(weights), "pt") as stored:
+            names = list(stored.keys())
+        assert not any(name.startswith(("rotation_moving.", "translation_moving.")) for name in names)
+        assert load_model(tmp_path / "mr_mr.json").rotation_moving is not None
+
+    @pytest.mark.parametrize("suffix", [".pt", ".pth", ".ckpt"])
+    def test_pickles_are_refused(self, tmp_path, suffix):
+        path = tmp_path / f"model{suffix}"
+        torch.save({"x": torch.zeros(1)}, path)
+        with pytest.raises(InputError, match=f"model\\{suffix}: a pickled file"):
+            load_model(path)
+
+    def test_missing_or_foreign_files(self, tmp_path):
+        with pytest.raises(InputNotFoundError, match="nothing.json: not found"):
+            load_model(tmp_path / "nothing")
+        save_model(DPCN(TINY), tmp_path / "a")
+        (tmp_path / "a.json").write_text(json.dumps({"format": "something else"}))
+        with pytest.raises(InputError, match="a.json: not a dpcn_med model config"):
+            load_model(tmp_path / "a")
+        save_model(DPCN(TINY), tmp_path / "b")
+        other = ModelConfig(**{**TINY.to_json(), "channels": (4, 16, 16)})
+        save_model(DPCN(other), tmp_path / "c")
+        (tmp_path / "c.safetensors").replace(tmp_path / "b.safetensors")
+        with pytest.raises(InputError, match="b.safetensors: does not fit b.json"):
+            load_model(tmp_path / "b")
+
+    def test_paths(self):
+        assert [p.name for p in model_paths("dir/model.v2.json")] == ["model.v2.safetensors", "model.v2.json"]
