@@ -42,7 +42,8 @@ def _parser() -> argparse.ArgumentParser:
     options.add_argument("--mode", choices=("rigid", "similarity"), default="rigid",
                          help="rigid (6 DoF, default) or similarity (7 DoF, isotropic scale)")
     options.add_argument("--bandwidth", type=int, default=32, help="solver bandwidth B, grids are (2B)^3 (default 32)")
-    options.add_argument("--model", default="none", help="feature model: 'none' = learning-free (the only one yet)")
+    options.add_argument("--model", default="none", help="'none' (default): the learning-free solver; or a model "
+                         "trained with dpcn-med train (NAME.safetensors with its NAME.json)")
     options.add_argument("--no-refine", dest="refine", action="store_false",
                          help="skip the local mutual-information refinement")
     options.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:N")
@@ -74,6 +75,18 @@ def _parser() -> argparse.ArgumentParser:
                                 "report.json exists are skipped, so an interrupted run resumes.")
     batch.add_argument("pairs", type=Path, help="CSV file with a header row")
     batch.add_argument("-o", "--output", required=True, type=Path, help="output folder (created)")
+
+    training = commands.add_parser("train", help="train the feature networks (DPCN++) from a YAML config",
+                                   description="Train a model on synthetic pairs as CONFIG says (see training/configs/"
+                                   "); resumes from OUTPUT/checkpoint. Under torchrun (torchrun --nproc_per_node N -m "
+                                   "dpcn_med train ...) every process trains on its own device "
+                                   "(DistributedDataParallel). Writes OUTPUT/model.safetensors and .json, log.csv and "
+                                   "training.png.")
+    training.add_argument("--config", required=True, type=Path, help="YAML training config")
+    training.add_argument("--output", help="output folder (overrides the config's)")
+    training.add_argument("--steps", type=int, help="optimiser steps (overrides the config's)")
+    training.add_argument("--device", help="auto, cpu or cuda (overrides the config's)")
+    training.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and start afresh")
 
     info = commands.add_parser("info", help="print an image's geometry and intensity range")
     info.add_argument("image", help="image file or DICOM folder")
@@ -274,6 +287,24 @@ def _table(rows: list[dict[str, str]]) -> str:
     return "\n".join(lines)
 
 
+def _train(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from dpcn_med.train import load_config, train
+
+    config = load_config(args.config)
+    changes = {"output": args.output, "device": args.device, "resume": False if args.restart else None}
+    config = replace(config, **{k: v for k, v in changes.items() if v is not None})
+    if args.steps is not None:
+        config = replace(config, optimiser=replace(config.optimiser, steps=args.steps))
+    _, record = train(config)
+    if record:  # rank 0 only
+        after = record["validation_after"] or {}
+        print(f"trained {record['steps']} steps in {record['wall_seconds_this_run']:.0f} s; validation success "
+              f"{100 * after.get('success', float('nan')):.1f}%; model in {Path(config.output) / 'model.safetensors'}")
+    return EXIT_OK
+
+
 def _info(args: argparse.Namespace) -> int:
     from dpcn_med import io
 
@@ -293,6 +324,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _register(args)
         if args.command == "register-batch":
             return _register_batch(args)
+        if args.command == "train":
+            return _train(args)
         return _info(args)
     except InputError as error:
         print(f"dpcn-med: error: {error}", file=sys.stderr)

@@ -1,0 +1,244 @@
+"""The training loop: synthetic pairs on the device, AdamW, warm-up and cosine decay, validation, checkpoints.
+
+Single process, or one process per device under ``torchrun`` with DistributedDataParallel (each rank draws its own
+pairs; rank 0 validates, logs and writes). Everything a run writes goes to ``config.output``:
+
+* ``checkpoint.safetensors`` + ``checkpoint.json``: weights and optimiser state, the step (resumed from when
+  ``config.resume``);
+* ``log.csv``: a row per logged step (losses, rate, pairs per second) and per validation (success, median errors);
+* ``training.png``: the losses and the validation success against steps;
+* ``model.safetensors`` + ``model.json``: the final model with its training record (:func:`dpcn_med.models.save_model`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io as text_io
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from torch import Tensor
+
+from dpcn_med import __version__, io
+from dpcn_med.geometry import geodesic_distance
+from dpcn_med.models import DPCN, DPCNOutput, pose_loss, save_model
+from dpcn_med.models.weights import unique_state
+from dpcn_med.solver import PoseTarget
+from dpcn_med.train import distributed
+from dpcn_med.train.config import TrainConfig
+from dpcn_med.train.data import sample_pairs, validation_set, volume_bank
+
+SUCCESS_DEGREES, SUCCESS_VOXELS = 5.0, 2.0
+"""A registration succeeds within 5 degrees and 2 voxels (the learning issue's criterion)."""
+
+LOSS_TERMS = ("total", "rotation_kl", "rotation_l1", "scale_kl", "scale_l1", "translation_kl", "translation_l1")
+COLUMNS = ("step", "kind", "learning_rate", *LOSS_TERMS, "pairs_per_second", "success", "rotation_error_deg",
+           "translation_error_vox")
+
+
+def learning_rate(step: int, config: TrainConfig) -> float:
+    """Linear warm-up over ``warmup_steps``, then a cosine decay to ``final_fraction`` at ``steps``."""
+    settings = config.optimiser
+    if step < settings.warmup_steps:
+        return settings.learning_rate * (step + 1) / settings.warmup_steps
+    progress = (step - settings.warmup_steps) / max(1, settings.steps - settings.warmup_steps)
+    cosine = 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
+    return settings.learning_rate * (settings.final_fraction + (1 - settings.final_fraction) * cosine)
+
+
+def pose_errors(output: DPCNOutput, target: PoseTarget) -> tuple[Tensor, Tensor]:
+    """``(B,)`` rotation errors in degrees and ``(B,)`` translation errors in voxels."""
+    rotation = torch.rad2deg(geodesic_distance(output.rotation.double(), target.rotation.double()))
+    translation = (output.translation.double() - target.translation.double()).norm(dim=-1)
+    return rotation, translation
+
+
+@torch.no_grad()
+def evaluate(model: DPCN, pairs: list[tuple[Tensor, Tensor, PoseTarget]]) -> dict[str, float]:
+    """Success rate and median errors of ``model`` (eval mode: arg-max with refinement) over ``pairs``."""
+    was_training = model.training
+    model.eval()
+    rotations, translations = [], []
+    for fixed, moving, target in pairs:
+        rotation, translation = pose_errors(model(fixed, moving), target)
+        rotations.append(rotation)
+        translations.append(translation)
+    model.train(was_training)
+    rotation, translation = torch.cat(rotations), torch.cat(translations)
+    success = ((rotation < SUCCESS_DEGREES) & (translation < SUCCESS_VOXELS)).double().mean()
+    return {"success": success.item(), "rotation_error_deg": rotation.median().item(),
+            "translation_error_vox": translation.median().item()}
+
+
+def _checkpoint_paths(output: Path) -> tuple[Path, Path]:
+    return output / "checkpoint.safetensors", output / "checkpoint.json"
+
+
+def save_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, step: int, config: TrainConfig,
+                    rows: list[dict]) -> None:
+    """Weights and optimiser moments as safetensors, everything else as JSON (no pickle anywhere)."""
+    tensors = {f"model.{name}": tensor for name, tensor in unique_state(model).items()}
+    state = optimiser.state_dict()
+    scalars = {}
+    for index, values in state["state"].items():
+        for name, value in values.items():
+            if isinstance(value, Tensor):
+                tensors[f"optimiser.{index}.{name}"] = value
+            else:
+                scalars[f"{index}.{name}"] = value
+    weights, description = _checkpoint_paths(Path(config.output))
+    io.write_tensors(tensors, weights)
+    io.write_json({"step": step, "param_groups": state["param_groups"], "optimiser_scalars": scalars,
+                   "config": config.to_json(), "rows": rows, "version": __version__}, description)
+
+
+def load_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, config: TrainConfig) -> tuple[int, list[dict]]:
+    """Restore a checkpoint into ``model`` and ``optimiser``: ``(step, log rows)``; ``(0, [])`` without one."""
+    weights, description = _checkpoint_paths(Path(config.output))
+    if not (config.resume and weights.is_file() and description.is_file()):
+        return 0, []
+    saved, tensors = io.read_json(description), io.read_tensors(weights)
+    model_state = {name[len("model."):]: t for name, t in tensors.items() if name.startswith("model.")}
+    model.load_state_dict({**model.state_dict(), **model_state})
+    state: dict = {"state": {}, "param_groups": saved["param_groups"]}
+    for name, tensor in tensors.items():
+        if name.startswith("optimiser."):
+            _, index, key = name.split(".", 2)
+            state["state"].setdefault(int(index), {})[key] = tensor
+    for name, value in saved["optimiser_scalars"].items():
+        index, key = name.split(".", 1)
+        state["state"].setdefault(int(index), {})[key] = value
+    optimiser.load_state_dict(state)
+    return int(saved["step"]), list(saved["rows"])
+
+
+def _csv(rows: list[dict]) -> str:
+    buffer = text_io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n", extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    return buffer.getvalue()
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    """Training losses (log scale) and validation success against steps, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, (losses, success) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    train_rows = [r for r in rows if r["kind"] == "train"]
+    for term in LOSS_TERMS:
+        values = [(r["step"], r[term]) for r in train_rows if r.get(term, 0) > 0]
+        if values:
+            losses.plot(*zip(*values), label=term, lw=2 if term == "total" else 1)
+    losses.set(xlabel="step", ylabel="loss", yscale="log", title="training loss")
+    losses.legend(fontsize=7)
+    validation = [r for r in rows if r["kind"] == "validation"]
+    if validation:
+        success.plot([r["step"] for r in validation], [100 * r["success"] for r in validation], "o-")
+    success.set(xlabel="step", ylabel="%", ylim=(0, 100),
+                title=f"validation success (< {SUCCESS_DEGREES:g} deg and < {SUCCESS_VOXELS:g} voxels)")
+    with io.atomic_output(path) as staged:
+        figure.savefig(staged, dpi=110)
+    plt.close(figure)
+
+
+def train(config: TrainConfig) -> tuple[DPCN, dict]:
+    """Train a model as ``config`` says (resuming from its checkpoint if there is one).
+
+    Returns:
+        ``(model, record)``: the trained (unwrapped) model on its device and the training record saved with it.
+    """
+    process = distributed.start(config.device)
+    output = Path(config.output)
+    if process.main:
+        output.mkdir(parents=True, exist_ok=True)
+    distributed.barrier(process)
+    size = 2 * config.model.bandwidth
+    bank = volume_bank(config.data.volumes, size, device=process.device)
+    torch.manual_seed(config.seed)  # the same initial weights on every rank
+    model = DPCN(config.model).to(process.device).train()
+    optimiser = torch.optim.AdamW(model.parameters(), lr=config.optimiser.learning_rate,
+                                  weight_decay=config.optimiser.weight_decay)
+    step, rows = load_checkpoint(model, optimiser, config)
+    network = model
+    if process.distributed:
+        network = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[process.device] if process.device.type == "cuda" else None,
+            find_unused_parameters=True)  # rigid mode leaves the scale temperature unused
+    generator = torch.Generator(device=process.device).manual_seed(
+        config.seed * 1_000_003 + process.rank * 7_919 + step)  # a resumed run draws new pairs, not the old ones
+    validation = None
+    if process.main:
+        validation_bank = volume_bank(config.data.validation_volumes, size, device=process.device)
+        validation = validation_set(validation_bank, config.data.validation_pairs, config.data.validation_seed,
+                                    config.data.pair)
+        if step == 0:
+            rows.append({"step": 0, "kind": "validation", **evaluate(model, validation)})
+    amp = config.optimiser.amp and process.device.type == "cuda"
+    from tqdm import tqdm
+
+    bar = tqdm(total=config.optimiser.steps, initial=step, disable=not process.main, desc="training",
+               dynamic_ncols=True)
+    started, pairs_since, clock = time.perf_counter(), 0, time.perf_counter()
+    while step < config.optimiser.steps:
+        rate = learning_rate(step, config)
+        for group in optimiser.param_groups:
+            group["lr"] = rate
+        fixed, moving, target = sample_pairs(bank, config.optimiser.batch_size, generator, config.data.pair)
+        with torch.autocast(device_type=process.device.type, dtype=torch.bfloat16, enabled=amp):
+            output_ = network(fixed, moving, target, generator=None)
+        terms = pose_loss(output_, target)
+        optimiser.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        if config.optimiser.gradient_clip > 0:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), config.optimiser.gradient_clip)
+        optimiser.step()
+        step += 1
+        pairs_since += config.optimiser.batch_size * process.world_size
+        bar.update(1)
+        if step % config.log_every == 0 or step == config.optimiser.steps:
+            values = torch.stack([terms[t].detach().float() for t in LOSS_TERMS])
+            if process.distributed:
+                dist.all_reduce(values)
+                values /= process.world_size
+            now = time.perf_counter()
+            row = {"step": step, "kind": "train", "learning_rate": rate,
+                   **{t: v.item() for t, v in zip(LOSS_TERMS, values)},
+                   "pairs_per_second": pairs_since / (now - clock)}
+            pairs_since, clock = 0, now
+            if process.main:
+                rows.append(row)
+                bar.set_postfix(loss=f"{row['total']:.3g}")
+        if process.main and (step % config.validate_every == 0 or step == config.optimiser.steps):
+            rows.append({"step": step, "kind": "validation", **evaluate(model, validation)})
+            bar.write(f"step {step}: validation success {100 * rows[-1]['success']:.1f}%")
+        if step % config.checkpoint_every == 0 or step == config.optimiser.steps:
+            if process.main:
+                save_checkpoint(model, optimiser, step, config, rows)
+                io.write_text(_csv(rows), output / "log.csv")
+                plot(rows, output / "training.png")
+            distributed.barrier(process)
+    bar.close()
+    record = {}
+    if process.main:
+        validations = [r for r in rows if r["kind"] == "validation"]
+        record = {"steps": step, "pairs_seen": step * config.optimiser.batch_size * process.world_size,
+                  "wall_seconds_this_run": time.perf_counter() - started, "processes": process.world_size,
+                  "device": torch.cuda.get_device_name(process.device) if process.device.type == "cuda" else "cpu",
+                  "training_volumes": list(config.data.volumes),
+                  "validation_volumes": list(config.data.validation_volumes),
+                  "validation_before": validations[0] if validations else None,
+                  "validation_after": validations[-1] if validations else None,
+                  "config": replace(config, output=str(output)).to_json()}
+        save_model(model, output / "model", record=record)
+        io.write_text(_csv(rows), output / "log.csv")
+        plot(rows, output / "training.png")
+    distributed.stop(process)
+    return model, record
