@@ -638,6 +638,23 @@ def read_tensors(path: str | os.PathLike) -> dict[str, Any]:
         raise InputError(f"{name}: not a readable .safetensors file ({error})") from None
 
 
+def read_text(path: str | os.PathLike, *, encoding: str = "utf-8") -> str:
+    """The content of a text file (``latin-1`` decodes any bytes, for formats whose encoding is not stated).
+
+    Raises:
+        InputNotFoundError: the file is missing.
+        InputError: not decodable as ``encoding``.
+    """
+    name = os.fspath(path)
+    if not os.path.isfile(name):
+        raise InputNotFoundError(f"{name}: not found (no such file); check the path")
+    try:
+        with open(name, encoding=encoding) as stream:
+            return stream.read()
+    except UnicodeDecodeError as error:
+        raise InputError(f"{name}: not a {encoding} text file ({error})") from None
+
+
 def read_json(path: str | os.PathLike) -> Any:
     """The content of a JSON file.
 

@@ -608,3 +608,15 @@ class TestReadJson:
             io.read_json(tmp_path / "b.json")
         with pytest.raises(InputNotFoundError, match=r"c\.json: not found"):
             io.read_json(tmp_path / "c.json")
+
+
+class TestReadText:
+    def test_reads_and_names_the_problem(self, tmp_path):
+        (tmp_path / "a.txt").write_text("Point 1\n")
+        assert io.read_text(tmp_path / "a.txt") == "Point 1\n"
+        (tmp_path / "b.txt").write_bytes(b"\xff\xfe\x00")
+        with pytest.raises(InputError, match=r"b\.txt: not a utf-8 text file"):
+            io.read_text(tmp_path / "b.txt")
+        assert io.read_text(tmp_path / "b.txt", encoding="latin-1") == "\xff\xfe\x00"
+        with pytest.raises(InputNotFoundError, match=r"c\.txt: not found"):
+            io.read_text(tmp_path / "c.txt")

@@ -9,14 +9,19 @@ import socket
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
+import SimpleITK as sitk
 import torch
 import torch.multiprocessing as mp
 
 from dpcn_med import io
 from dpcn_med.cli import main
 from dpcn_med.errors import InputError, InputNotFoundError
+from dpcn_med.evaluation import moved_copy, random_similarity
 from dpcn_med.models import ModelConfig, load_model
+from dpcn_med.preprocess import foreground_box
+from dpcn_med.samples import mni152_t1
 from dpcn_med.train import DataConfig, OptimiserConfig, TrainConfig, load_config, train
 from dpcn_med.train.loop import learning_rate
 
@@ -113,6 +118,26 @@ class TestTrain:
         rows = log_rows(output)
         assert [int(r["step"]) for r in rows if r["kind"] == "train"] == [1, 2, 3, 4, 5, 6]
         assert json.loads((output / "checkpoint.json").read_text())["step"] == 6
+
+    def test_real_pairs_from_folders_train_and_validate(self, tmp_path):
+        """Folders of registered pairs (.tfm ground truth) feed every step here and are scored at validation."""
+        image = sitk.BinShrink(sitk.SmoothingRecursiveGaussian(mni152_t1(), 4.0), [4, 4, 4])
+        centre = foreground_box(image)[0]
+        for seed in range(2):
+            folder = tmp_path / "pairs" / f"p{seed}"
+            folder.mkdir(parents=True)
+            truth = random_similarity(np.random.default_rng(seed), centre, max_shift_mm=10.0)
+            io.write_image(image, folder / "fixed.nii.gz")
+            io.write_image(moved_copy(image, truth), folder / "moving.nii.gz")
+            io.write_transform(truth, folder / "transform.tfm")
+        config = tiny_config(tmp_path)
+        config = replace(config, data=replace(config.data, folders=(str(tmp_path / "pairs"),), folder_fraction=1.0,
+                                              validation_folders=(str(tmp_path / "pairs"),)),
+                         optimiser=replace(config.optimiser, steps=2))
+        train(config)
+        rows = [r for r in log_rows(Path(config.output)) if r["kind"] == "validation"]
+        assert rows and all(0.0 <= float(r["real_success"]) <= 1.0 for r in rows)
+        assert all(float(r["real_rotation_error_deg"]) >= 0 for r in rows)
 
     def test_cli(self, tmp_path, capsys):
         (tmp_path / "tiny.yaml").write_text(TINY_YAML)

@@ -31,6 +31,11 @@ class DataConfig:
         pair: poses, crops, and the simulated modality of each side (:class:`dpcn_med.synth.PairConfig`).
         validation_pairs: size of the fixed validation set.
         validation_seed: its seed (the same pairs at every validation).
+        folders: folders of real registered pairs (:mod:`dpcn_med.train.folders`) mixed into training.
+        folder_fraction: share of the steps whose batch comes from ``folders`` (when there are any).
+        folder_crop: ``(low, high)`` fraction of the fixed foreground a real pair keeps after a random slab crop,
+            or ``None`` for whole pairs.
+        validation_folders: folders of real held-out pairs, scored at every validation beside the synthetic set.
     """
 
     volumes: tuple[str, ...] = ("mni",)
@@ -38,6 +43,10 @@ class DataConfig:
     pair: PairConfig = field(default_factory=PairConfig)
     validation_pairs: int = 64
     validation_seed: int = 1234
+    folders: tuple[str, ...] = ()
+    folder_fraction: float = 0.5
+    folder_crop: tuple[float, float] | None = (0.6, 1.0)
+    validation_folders: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -144,8 +153,8 @@ def load_config(path: str | os.PathLike) -> TrainConfig:
 
     data = config.data
     data = DataConfig(**{**{f.name: getattr(data, f.name) for f in fields(DataConfig)},
-                         "volumes": tuple(resolve(v) for v in data.volumes),
-                         "validation_volumes": tuple(resolve(v) for v in data.validation_volumes)})
+                         **{key: tuple(resolve(v) for v in getattr(data, key))
+                            for key in ("volumes", "validation_volumes", "folders", "validation_folders")}})
     output = config.output if os.path.isabs(config.output) else str(folder / config.output)
     return TrainConfig(**{**{f.name: getattr(config, f.name) for f in fields(TrainConfig)}, "data": data,
                           "output": output})

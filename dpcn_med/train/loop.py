@@ -31,13 +31,15 @@ from dpcn_med.solver import PoseTarget
 from dpcn_med.train import distributed
 from dpcn_med.train.config import TrainConfig
 from dpcn_med.train.data import sample_pairs, validation_set, volume_bank
+from dpcn_med.train.folders import FolderPairs, collate_pairs
 
 SUCCESS_DEGREES, SUCCESS_VOXELS = 5.0, 2.0
 """A registration succeeds within 5 degrees and 2 voxels (the learning issue's criterion)."""
 
 LOSS_TERMS = ("total", "rotation_kl", "rotation_l1", "scale_kl", "scale_l1", "translation_kl", "translation_l1")
-COLUMNS = ("step", "kind", "learning_rate", *LOSS_TERMS, "pairs_per_second", "success", "rotation_error_deg",
-           "translation_error_vox")
+SCORES = ("success", "rotation_error_deg", "translation_error_vox")
+COLUMNS = ("step", "kind", "learning_rate", *LOSS_TERMS, "pairs_per_second", *SCORES,
+           *(f"real_{name}" for name in SCORES))
 
 
 def learning_rate(step: int, config: TrainConfig) -> float:
@@ -72,6 +74,28 @@ def evaluate(model: DPCN, pairs: list[tuple[Tensor, Tensor, PoseTarget]]) -> dic
     success = ((rotation < SUCCESS_DEGREES) & (translation < SUCCESS_VOXELS)).double().mean()
     return {"success": success.item(), "rotation_error_deg": rotation.median().item(),
             "translation_error_vox": translation.median().item()}
+
+
+def _real_pairs(roots: tuple[str, ...], config: TrainConfig, *, crop: tuple[float, float] | None, seed: int
+                ) -> torch.utils.data.ConcatDataset | None:
+    """The folders' real pairs as one dataset, or ``None`` without folders."""
+    if not roots:
+        return None
+    return torch.utils.data.ConcatDataset([FolderPairs(root, config.model.bandwidth, crop=crop, seed=seed)
+                                           for root in roots])
+
+
+def _to(batch: tuple[Tensor, Tensor, PoseTarget], device: torch.device) -> tuple[Tensor, Tensor, PoseTarget]:
+    fixed, moving, target = batch
+    return fixed.to(device), moving.to(device), PoseTarget(*(t.to(device) for t in (
+        target.rotation, target.scale, target.translation)))
+
+
+def _validation_row(step: int, model: DPCN, synthetic: list, real: list | None) -> dict:
+    row = {"step": step, "kind": "validation", **evaluate(model, synthetic)}
+    if real is not None:
+        row.update({f"real_{name}": value for name, value in evaluate(model, real).items()})
+    return row
 
 
 def _checkpoint_paths(output: Path) -> tuple[Path, Path]:
@@ -174,13 +198,18 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
             find_unused_parameters=True)  # rigid mode leaves the scale temperature unused
     generator = torch.Generator(device=process.device).manual_seed(
         config.seed * 1_000_003 + process.rank * 7_919 + step)  # a resumed run draws new pairs, not the old ones
-    validation = None
+    real = _real_pairs(config.data.folders, config, crop=config.data.folder_crop, seed=config.seed + process.rank)
+    validation, real_validation = None, None
     if process.main:
         validation_bank = volume_bank(config.data.validation_volumes, size, device=process.device)
         validation = validation_set(validation_bank, config.data.validation_pairs, config.data.validation_seed,
                                     config.data.pair)
+        held_out = _real_pairs(config.data.validation_folders, config, crop=None, seed=0)
+        if held_out is not None:
+            items = [held_out[i] for i in range(len(held_out))]
+            real_validation = [_to(collate_pairs(items[i:i + 16]), process.device) for i in range(0, len(items), 16)]
         if step == 0:
-            rows.append({"step": 0, "kind": "validation", **evaluate(model, validation)})
+            rows.append(_validation_row(0, model, validation, real_validation))
     amp = config.optimiser.amp and process.device.type == "cuda"
     from tqdm import tqdm
 
@@ -191,7 +220,15 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
         rate = learning_rate(step, config)
         for group in optimiser.param_groups:
             group["lr"] = rate
-        fixed, moving, target = sample_pairs(bank, config.optimiser.batch_size, generator, config.data.pair)
+        if real is not None and torch.rand((), generator=generator, device=generator.device) < \
+                config.data.folder_fraction:
+            for dataset in real.datasets:
+                dataset.set_epoch(step)  # new crops every step
+            index = torch.randint(len(real), (config.optimiser.batch_size,), generator=generator,
+                                  device=generator.device)
+            fixed, moving, target = _to(collate_pairs([real[int(i)] for i in index]), process.device)
+        else:
+            fixed, moving, target = sample_pairs(bank, config.optimiser.batch_size, generator, config.data.pair)
         with torch.autocast(device_type=process.device.type, dtype=torch.bfloat16, enabled=amp):
             output_ = network(fixed, moving, target, generator=None)
         terms = pose_loss(output_, target)
@@ -217,7 +254,7 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
                 rows.append(row)
                 bar.set_postfix(loss=f"{row['total']:.3g}")
         if process.main and (step % config.validate_every == 0 or step == config.optimiser.steps):
-            rows.append({"step": step, "kind": "validation", **evaluate(model, validation)})
+            rows.append(_validation_row(step, model, validation, real_validation))
             bar.write(f"step {step}: validation success {100 * rows[-1]['success']:.1f}%")
         if step % config.checkpoint_every == 0 or step == config.optimiser.steps:
             if process.main:
