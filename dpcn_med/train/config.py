@@ -149,13 +149,13 @@ def load_config(path: str | os.PathLike) -> TrainConfig:
     folder = path.resolve().parent
 
     def resolve(name: str) -> str:
-        return name if name in BUILT_IN_VOLUMES or os.path.isabs(name) else str(folder / name)
+        return name if name in BUILT_IN_VOLUMES or os.path.isabs(name) else os.path.normpath(folder / name)
 
     data = config.data
     data = DataConfig(**{**{f.name: getattr(data, f.name) for f in fields(DataConfig)},
                          **{key: tuple(resolve(v) for v in getattr(data, key))
                             for key in ("volumes", "validation_volumes", "folders", "validation_folders")}})
-    output = config.output if os.path.isabs(config.output) else str(folder / config.output)
+    output = config.output if os.path.isabs(config.output) else os.path.normpath(folder / config.output)
     return TrainConfig(**{**{f.name: getattr(config, f.name) for f in fields(TrainConfig)}, "data": data,
                           "output": output})
 

@@ -230,8 +230,8 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
         else:
             fixed, moving, target = sample_pairs(bank, config.optimiser.batch_size, generator, config.data.pair)
         with torch.autocast(device_type=process.device.type, dtype=torch.bfloat16, enabled=amp):
-            output_ = network(fixed, moving, target, generator=None)
-        terms = pose_loss(output_, target)
+            result = network(fixed, moving, target)
+        terms = pose_loss(result, target)
         optimiser.zero_grad(set_to_none=True)
         terms["total"].backward()
         if config.optimiser.gradient_clip > 0:
