@@ -166,7 +166,8 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
         io.write_transform(result.moving_to_fixed, staging / "inverse.h5")
         io.write_image(result.resampled, staging / "moving_resampled.nii.gz")
         overview_figure(result.fixed_image, result.moving_image, result.fixed_to_moving, staging / "overview.png",
-                        title=f"{Path(moving).name} onto {Path(fixed).name}: confidence {result.confidence:.3f}",
+                        title=f"{Path(moving).name} onto {Path(fixed).name}: confidence {result.confidence:.3f}, "
+                        f"overlap {result.overlap:.0%}",
                         centre=result.fixed_grid.centre)  # the fixed foreground centre, already found
         io.write_json(report, staging / "report.json")
         output.mkdir(parents=True, exist_ok=True)

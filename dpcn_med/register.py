@@ -82,6 +82,8 @@ class RegistrationResult:
         metric: Mattes mutual information (SimpleITK's sign: lower is better) at ``"stored"`` (identity),
             ``"dpc"`` and ``"refined"`` (``None`` without refinement, or where the pose leaves no overlap).
         refined: whether ``fixed_to_moving`` is the refined transform.
+        overlap: share of the fixed foreground that ``fixed_to_moving`` maps inside the moving image's field of view
+            (:func:`field_of_view_overlap`).
         timings: wall-clock seconds per step (``read``, ``preprocess``, ``solve``, ``refine``, ``resample``) and
             per solver stage (``solver.*``).
         device: the torch device the solver ran on.
@@ -102,6 +104,7 @@ class RegistrationResult:
     modalities: tuple[str, str]
     metric: dict[str, float | None]
     refined: bool
+    overlap: float = 1.0
     timings: dict[str, float] = field(default_factory=dict)
     device: str = "cpu"
     model: str = "learning-free"
@@ -119,7 +122,8 @@ class RegistrationResult:
                                "moving_centre_lps": list(self.moving_grid.centre)},
             "dpc": describe_transform(self.dpc_transform),
             "final": describe_transform(self.fixed_to_moving),
-            "refined": self.refined, "mattes_mutual_information": self.metric, "timings_s": self.timings,
+            "refined": self.refined, "overlap_fraction": self.overlap, "mattes_mutual_information": self.metric,
+            "timings_s": self.timings,
         }
 
 
@@ -288,6 +292,7 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
                 final, refined = candidate, True
         timings["refine"] = time.perf_counter() - start
 
+    overlap = field_of_view_overlap(fixed_prepared.foreground, moving_image, final)
     resampled = None
     if resample:
         start = time.perf_counter()
@@ -299,9 +304,34 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         fixed_to_moving=final, moving_to_fixed=final.GetInverse(), dpc_transform=dpc,
         confidence=float(solution.confidence[0]), mode=mode, bandwidth=bandwidth, fixed_grid=fixed_grid,
         moving_grid=moving_grid, modalities=(fixed_prepared.modality, moving_prepared.modality), metric=metric,
-        refined=refined, timings=timings, device=str(torch_device),
+        refined=refined, overlap=overlap, timings=timings, device=str(torch_device),
         model="learning-free" if network is None else os.fspath(model), fixed_image=fixed_image,
         moving_image=moving_image, resampled=resampled)
+
+
+def field_of_view_overlap(fixed_foreground: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform, *,
+                          samples: int = 20000, seed: int = 0) -> float:
+    """Share of the fixed foreground whose points ``fixed_to_moving`` sends inside the moving image's domain.
+
+    Args:
+        fixed_foreground: binary mask in the fixed image's physical space (any grid).
+        moving: the moving image (only its geometry is used).
+        fixed_to_moving: the registration, fixed to moving (LPS mm).
+        samples: at most this many foreground voxels are tested (a seeded random subset).
+    """
+    indices = np.argwhere(sitk.GetArrayViewFromImage(fixed_foreground) > 0)[:, ::-1]  # (K, 3) as (x, y, z)
+    if len(indices) == 0:
+        return 0.0
+    if len(indices) > samples:
+        indices = indices[np.random.default_rng(seed).choice(len(indices), samples, replace=False)]
+    direction = np.reshape(fixed_foreground.GetDirection(), (3, 3))
+    points = (direction @ (indices * fixed_foreground.GetSpacing()).T).T + fixed_foreground.GetOrigin()
+    matrix = homogeneous_matrix(fixed_to_moving)
+    mapped = points @ matrix[:3, :3].T + matrix[:3, 3]
+    moving_direction = np.reshape(moving.GetDirection(), (3, 3))
+    continuous = (moving_direction.T @ (mapped - moving.GetOrigin()).T).T / moving.GetSpacing()
+    inside = np.all((continuous >= -0.5) & (continuous <= np.asarray(moving.GetSize()) - 0.5), axis=1)
+    return float(inside.mean())
 
 
 def resample_moving(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform) -> sitk.Image:

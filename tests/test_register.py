@@ -13,8 +13,8 @@ from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.geometry import homogeneous_matrix
 from dpcn_med.models import DPCN, ModelConfig, save_model
-from dpcn_med.preprocess import foreground_box
-from dpcn_med.register import RegistrationResult, register, resolve_device
+from dpcn_med.preprocess import foreground_box, foreground_mask
+from dpcn_med.register import RegistrationResult, field_of_view_overlap, register, resolve_device
 from dpcn_med.samples import mni152_t1
 from tests.conftest import shared_path
 
@@ -119,6 +119,40 @@ class TestLearnedModel:
                                                                bandwidth=16, refine=False).dpc_transform),
                                    homogeneous_matrix(plain.dpc_transform), atol=1e-3)
         assert plain.model == "learning-free"
+
+
+class TestFieldOfViewOverlap:
+    def test_share_of_the_fixed_foreground_inside_the_moving_image(self):
+        """Crop the moving copy to its upper half along z: the overlap is the share of the fixed foreground voxels
+        whose z index lies in that half (counted directly), whatever the pose."""
+        fixed = mni_2mm()
+        truth = random_similarity(np.random.default_rng(8), foreground_box(fixed)[0], max_shift_mm=0.0)
+        foreground = foreground_mask(fixed)
+        moved = moved_copy(fixed, truth)  # the same voxels, placed by the pose
+        half = moved.GetSize()[2] // 2
+        cropped = sitk.RegionOfInterest(moved, [*moved.GetSize()[:2], moved.GetSize()[2] - half], [0, 0, half])
+        mask = sitk.GetArrayViewFromImage(foreground) > 0
+        expected = mask[half:].sum() / mask.sum()
+        assert field_of_view_overlap(foreground, cropped, truth, samples=10 ** 9) == pytest.approx(expected, abs=0.01)
+        assert field_of_view_overlap(foreground, moved, truth) == 1.0
+
+    def test_a_slab_registers_to_the_whole_volume(self):
+        """Partial field of view: the fixed image is a slab keeping 60% of the head's height (its field of view
+        ends at the cuts), the moving image the whole head in another pose."""
+        whole = mni_2mm()
+        stats = sitk.LabelShapeStatisticsImageFilter()
+        stats.Execute(foreground_mask(whole))
+        box = stats.GetBoundingBox(1)
+        length = int(0.6 * box[5])
+        fixed = sitk.RegionOfInterest(whole, [*whole.GetSize()[:2], length], [0, 0, box[2] + (box[5] - length) // 2])
+        truth = random_similarity(np.random.default_rng(12), foreground_box(fixed)[0], max_shift_mm=30.0)
+        result = register(fixed, moved_copy(whole, truth))
+        assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 2.0
+        assert result.overlap == 1.0  # the slab lies inside the whole moving head
+
+    def test_reported_by_register(self):
+        result = register(mni_2mm(), mni_2mm(), refine=False)
+        assert result.overlap == 1.0 and result.to_dict()["overlap_fraction"] == 1.0
 
 
 class TestMasks:

@@ -163,7 +163,8 @@ def _ddp_worker(rank: int, folder: str, port: int) -> None:
     os.environ.update({"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "RANK": str(rank),
                        "LOCAL_RANK": str(rank), "WORLD_SIZE": "2"})
     torch.set_num_threads(1)
-    config = replace(tiny_config(Path(folder)), optimiser=replace(tiny_config(Path(folder)).optimiser, steps=2))
+    config = load_config(Path(folder) / "tiny.yaml")  # written once by the test: ranks must not race on it
+    config = replace(config, optimiser=replace(config.optimiser, steps=2))
     model, _ = train(config)
     io.write_tensors(model.state_dict(), Path(folder) / f"rank{rank}.safetensors")
 
