@@ -180,7 +180,8 @@ class DPCNRegistrationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def _showResult(self, result: Result) -> None:
         self._parameterNode.outputTransform = result.transform
-        text = f"Confidence {result.confidence:.3f} ({result.seconds:.1f} s)."
+        text = (f"Confidence {result.confidence:.3f}, {result.overlap:.0%} of the fixed volume overlapped "
+                f"({result.seconds:.1f} s).")
         if result.low_confidence:
             text += " Low: the result may be wrong; check the alignment in the views before using it."
             self.ui.confidenceLabel.setStyleSheet("color: #c0392b")

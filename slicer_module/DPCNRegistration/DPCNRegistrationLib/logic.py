@@ -40,6 +40,8 @@ class Result:
     confidence: float
     low_confidence: bool
     """dpcn-med wrote the result but its confidence is under its threshold: look before trusting it."""
+    overlap: float
+    """Share of the fixed foreground that the result maps inside the moving volume's field of view."""
     report: dict = field(repr=False)
     """dpcn-med's report.json."""
     seconds: float = 0.0
@@ -124,7 +126,8 @@ class Registration:
             if self.output_volume.GetDisplayNode() is None:
                 self.output_volume.CreateDefaultDisplayNodes()
         return Result(transform=transform, volume=self.output_volume, confidence=float(report["confidence"]),
-                      low_confidence=self.job.returncode == process.EXIT_LOW_CONFIDENCE, report=report,
+                      low_confidence=self.job.returncode == process.EXIT_LOW_CONFIDENCE,
+                      overlap=float(report["overlap_fraction"]), report=report,
                       seconds=time.perf_counter() - self.started)
 
 
