@@ -16,6 +16,7 @@ from dpcn_med.evaluation import moved_copy, random_similarity
 from dpcn_med.geometry import CanonicalGrid, geodesic_distance, homogeneous_matrix, physical_transform, warp
 from dpcn_med.preprocess import foreground_box
 from dpcn_med.solver import PoseTarget, solve
+from dpcn_med.synth import slab_mask
 from dpcn_med.train.folders import (
     FolderPairs,
     collate_pairs,
@@ -23,7 +24,6 @@ from dpcn_med.train.folders import (
     parse_rire_standard,
     pose_on_grids,
     read_truth,
-    slab_mask,
 )
 from tests.conftest import shared_path
 

@@ -23,11 +23,11 @@ from dpcn_med.synth.contrast import (
     random_modality,
     resolution_loss,
 )
-from dpcn_med.synth.pairs import PAIR_MODALITIES, PairConfig, synthetic_pairs
+from dpcn_med.synth.pairs import PAIR_MODALITIES, PairConfig, slab_mask, synthetic_pairs
 from dpcn_med.synth.poses import Pose, random_poses
 from dpcn_med.synth.pseudo_ct import HEAD_CT, CTTissues, pseudo_ct
 from dpcn_med.synth.ultrasound import UltrasoundConfig, simulated_ultrasound
 
 __all__ = ["HEAD_CT", "PAIR_MODALITIES", "CTTissues", "ContrastConfig", "PairConfig", "Pose", "UltrasoundConfig",
            "bias_field", "blur", "noise", "pseudo_ct", "random_intensity_map", "random_modality", "random_poses",
-           "resolution_loss", "simulated_ultrasound", "synthetic_pairs"]
+           "resolution_loss", "simulated_ultrasound", "slab_mask", "synthetic_pairs"]

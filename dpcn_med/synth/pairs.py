@@ -83,6 +83,34 @@ def _random_poses(batch: int, size: int, generator: torch.Generator, config: Pai
     return PoseTarget(rotation, scale, direction / direction.norm(dim=-1, keepdim=True) * length[:, None])
 
 
+def slab_mask(foreground: Tensor, fraction: float, axis: int, from_end: bool) -> Tensor:
+    """1 on a slab along ``axis`` that keeps ``fraction`` of ``foreground``, 0 beyond it.
+
+    The slab starts at one end of the axis (the last when ``from_end``) and ends at the first slice where the kept
+    foreground reaches ``fraction`` (the crop of :func:`synthetic_pairs`, and of
+    :class:`dpcn_med.train.folders.FolderPairs`).
+
+    Args:
+        foreground: ``(D, H, W)`` bool.
+        fraction: in ``(0, 1]``.
+        axis: torch axis, 0 (z), 1 (y) or 2 (x).
+        from_end: start at the high-index end.
+
+    Returns:
+        ``(D, H, W)`` float32 mask, broadcast along the other two axes.
+    """
+    profile = foreground.float().sum([a for a in range(3) if a != axis])
+    if from_end:
+        profile = profile.flip(0)
+    kept = profile.cumsum(0) / profile.sum().clamp_min(1.0)
+    end = int(torch.searchsorted(kept, torch.tensor([fraction], dtype=kept.dtype))) + 1
+    inside = torch.zeros_like(profile)
+    inside[:end] = 1.0
+    if from_end:
+        inside = inside.flip(0)
+    return inside.reshape([-1 if a == axis else 1 for a in range(3)]).expand(foreground.shape)
+
+
 def _slab_masks(volumes: Tensor, generator: torch.Generator, config: PairConfig) -> Tensor:
     """Per volume, 1 on a slab along a random axis that keeps a random fraction of the foreground, 0 beyond it.
 
@@ -95,18 +123,8 @@ def _slab_masks(volumes: Tensor, generator: torch.Generator, config: PairConfig)
     axes, from_end = integers(generator, 3, batch), integers(generator, 2, batch)
     masks = torch.ones_like(volumes)
     for index in torch.nonzero(cropped).flatten().tolist():
-        axis = axes[index]
-        foreground = (volumes[index, 0] > 0).to(volumes.dtype)
-        profile = foreground.sum([a for a in range(3) if a != axis])
-        if from_end[index]:
-            profile = profile.flip(0)
-        kept = profile.cumsum(0) / profile.sum().clamp_min(1.0)
-        end = int(torch.searchsorted(kept, overlap[index:index + 1])) + 1
-        inside = torch.zeros_like(profile)
-        inside[:end] = 1.0
-        if from_end[index]:
-            inside = inside.flip(0)
-        masks[index, 0] = inside.reshape([-1 if a == axis else 1 for a in range(3)])
+        masks[index, 0] = slab_mask(volumes[index, 0] > 0, float(overlap[index]), int(axes[index]),
+                                    bool(from_end[index]))
     return masks
 
 

@@ -49,6 +49,7 @@ from dpcn_med.geometry import CanonicalGrid, homogeneous_matrix, scale_and_rotat
 from dpcn_med.preprocess import PreparedImage, Preprocessing, pair_grids, prepare, resample_to_grid, to_tensor
 from dpcn_med.solver import PoseTarget
 from dpcn_med.solver.validation import MAX_BANDWIDTH, check_bandwidth
+from dpcn_med.synth import slab_mask
 
 FIXED_NAMES = ("fixed", "ct")
 """Names (before the first dot) of a pair's fixed image."""
@@ -330,33 +331,6 @@ def load_pair(files: PairFiles, bandwidth: int, preprocessing: Preprocessing | N
                      moving=to_tensor(resample_to_grid(moving.image, moving_grid))[0], fixed_foreground=foreground,
                      fixed_grid=fixed_grid, moving_grid=moving_grid, fixed_to_moving=fixed_to_moving,
                      target=pose_on_grids(fixed_to_moving, fixed_grid, moving_grid))
-
-
-def slab_mask(foreground: Tensor, fraction: float, axis: int, from_end: bool) -> Tensor:
-    """1 on a slab along ``axis`` that keeps ``fraction`` of ``foreground``, 0 beyond it.
-
-    The slab starts at one end of the axis (the last when ``from_end``) and ends at the first slice where the kept
-    foreground reaches ``fraction`` (the crop of :func:`dpcn_med.synth.synthetic_pairs`).
-
-    Args:
-        foreground: ``(D, H, W)`` bool.
-        fraction: in ``(0, 1]``.
-        axis: torch axis, 0 (z), 1 (y) or 2 (x).
-        from_end: start at the high-index end.
-
-    Returns:
-        ``(D, H, W)`` float32 mask, broadcast along the other two axes.
-    """
-    profile = foreground.float().sum([a for a in range(3) if a != axis])
-    if from_end:
-        profile = profile.flip(0)
-    kept = profile.cumsum(0) / profile.sum().clamp_min(1.0)
-    end = int(torch.searchsorted(kept, torch.tensor([fraction], dtype=kept.dtype))) + 1
-    inside = torch.zeros_like(profile)
-    inside[:end] = 1.0
-    if from_end:
-        inside = inside.flip(0)
-    return inside.reshape([-1 if a == axis else 1 for a in range(3)]).expand(foreground.shape)
 
 
 class FolderPairs(torch.utils.data.Dataset):
