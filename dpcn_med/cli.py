@@ -88,6 +88,18 @@ def _parser() -> argparse.ArgumentParser:
     training.add_argument("--device", help="auto, cpu or cuda (overrides the config's)")
     training.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and start afresh")
 
+    bench = commands.add_parser("benchmark", help="compare with SimpleITK, ANTs and elastix by initial rotation",
+                                description="Register the same pairs with dpcn_med and the classical tools, in "
+                                "30-degree bins of initial rotation, and write results.csv, summary.md and "
+                                "success.png into OUTDIR. Quick mode (default): the built-in volumes, one pose per "
+                                "bin, a few minutes; --full: the shared real volumes too, ten poses per bin.")
+    bench.add_argument("-o", "--output", type=Path, default=Path("benchmark_output"), help="output folder")
+    bench.add_argument("--full", action="store_true", help="the documented run (docs/benchmarks.md)")
+    bench.add_argument("--cases", nargs="+", help="override the mode's cases")
+    bench.add_argument("--methods", nargs="+", help="override the methods (default: every installed one)")
+    bench.add_argument("--trials", type=int, help="poses per case and bin")
+    bench.add_argument("--seed", type=int, default=0)
+
     info = commands.add_parser("info", help="print an image's geometry and intensity range")
     info.add_argument("image", help="image file or DICOM folder")
     return parser
@@ -306,6 +318,21 @@ def _train(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _benchmark(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from dpcn_med import benchmark
+
+    config = benchmark.FULL if args.full else benchmark.QUICK
+    changes = {"cases": tuple(args.cases) if args.cases else None, "trials": args.trials,
+               "methods": tuple(args.methods) if args.methods else None, "seed": args.seed}
+    config = replace(config, **{k: v for k, v in changes.items() if v is not None})
+    rows = benchmark.run_benchmark(config, progress=lambda line: print(line, file=sys.stderr))
+    command = "dpcn-med " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("dpcn-med") else "dpcn-med benchmark"
+    print(benchmark.write_outputs(rows, config, args.output, command=command))
+    return EXIT_OK
+
+
 def _info(args: argparse.Namespace) -> int:
     from dpcn_med import io
 
@@ -327,6 +354,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _register_batch(args)
         if args.command == "train":
             return _train(args)
+        if args.command == "benchmark":
+            return _benchmark(args)
         return _info(args)
     except InputError as error:
         print(f"dpcn-med: error: {error}", file=sys.stderr)

@@ -1,0 +1,368 @@
+"""``dpcn-med benchmark``: dpcn_med against SimpleITK, ANTs and elastix on the same pairs, binned by initial rotation.
+
+Every pair is a real volume and a copy of it (or of another contrast of the same anatomy, aligned voxel for voxel)
+moved by a known rigid transform: a rotation by an angle drawn uniformly inside the bin about a uniformly random axis,
+and a translation of uniform direction and length up to ``max_shift_mm``. Every method registers the same pairs in
+the same process; success is a target registration error under 2 mm over the corners of the fixed foreground's box.
+
+Methods (``METHODS``): dpcn_med learning-free with and without its refinement; SimpleITK Mattes mutual information
+(the same multi-resolution optimiser dpcn_med refines with) started from ``CenteredTransformInitializer`` GEOMETRY
+or MOMENTS, or from an exhaustive search over Euler angles as in SimpleITK's registration-initialisation notebook;
+ANTs ``Rigid``, alone and after its multi-start ``affine_initializer``; elastix's default rigid map. ANTs and elastix
+come with the ``benchmark`` extra (``pip install 'dpcn_med[benchmark]'``); without them their rows are left out.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+from dpcn_med.errors import InputError
+from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
+from dpcn_med.preprocess import foreground_box, foreground_mask
+from dpcn_med.register import Refinement, refine_transform, register
+
+SUCCESS_MM = 2.0
+BIN_DEGREES = 30
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@dataclass(frozen=True)
+class BenchmarkConfig:
+    """What to run.
+
+    Attributes:
+        cases: keys of :data:`CASES`.
+        methods: keys of :data:`METHODS`.
+        bins: initial-rotation bins in degrees, ``(low, high)``.
+        trials: pairs per case and bin.
+        max_shift_mm: translation length up to this.
+        seed: of the poses.
+    """
+
+    cases: tuple[str, ...] = ("mni", "mni-pseudo-ct")
+    methods: tuple[str, ...] = ()
+    bins: tuple[tuple[int, int], ...] = tuple((low, low + BIN_DEGREES) for low in range(0, 180, BIN_DEGREES))
+    trials: int = 1
+    max_shift_mm: float = 60.0
+    seed: int = 0
+
+
+QUICK = BenchmarkConfig(methods=("dpcn", "dpcn-global", "sitk-geometry", "sitk-moments", "sitk-exhaustive",
+                                 "ants-rigid", "elastix-rigid"))
+"""A few minutes on a CPU: the built-in volumes, one pose per bin, every method but ANTs' multi-start (25 s a
+pair); methods whose packages are missing are left out."""
+FULL = BenchmarkConfig(cases=("mni", "mni-pseudo-ct", "seg3d", "seg3d-pseudo-ct", "t1-flair"), trials=10)
+"""The documented run (docs/benchmarks.md): the shared real volumes too, ten poses per bin."""
+
+
+# ------------------------------------------------------------------------------------------------------------ pairs
+def _shared(relative: str) -> sitk.Image:
+    path = SHARED_DATA / relative
+    if not path.exists():
+        raise InputError(f"{path}: not found; this case needs ../shared/data beside the checkout")
+    return sitk.ReadImage(str(path))
+
+
+def _seg3d_pseudo_ct() -> tuple[sitk.Image, sitk.Image]:
+    from dpcn_med.synth import pseudo_ct
+
+    mr = _shared("seg3d/MR.nii.gz")
+    return mr, pseudo_ct(mr, bone=_shared("seg3d/skull_mask.nii.gz"), brain=_shared("seg3d/brain_mask.nii.gz"))
+
+
+def _mni_pair(moving: str) -> tuple[sitk.Image, sitk.Image]:
+    from dpcn_med import samples
+
+    if moving == "mni":
+        image = sitk.BinShrink(samples.mni152_t1(), [2, 2, 2])
+        return image, image
+    return (sitk.BinShrink(samples.mni152_head_t1(), [2, 2, 2]),
+            sitk.BinShrink(samples.mni152_pseudo_ct(), [2, 2, 2]))
+
+
+CASES: dict[str, tuple[str, bool, Callable[[], tuple[sitk.Image, sitk.Image]]]] = {
+    "mni": ("MNI152 T1 (2 mm) to itself", True, lambda: _mni_pair("mni")),
+    "mni-pseudo-ct": ("MNI152 head T1 to its pseudo-CT (2 mm)", False, lambda: _mni_pair("pseudo-ct")),
+    "seg3d": ("seg3d head T1 to itself", True, lambda: (_shared("seg3d/MR.nii.gz"),) * 2),
+    "seg3d-pseudo-ct": ("seg3d head T1 to its pseudo-CT", False, _seg3d_pseudo_ct),
+    "t1-flair": ("stroke T1 to FLAIR", False, lambda: (_shared("stroke/T1.nii.gz"), _shared("stroke/FLAIR.nii.gz"))),
+}
+"""name: (description, homogeneous, loader of the aligned ``(fixed, moving)`` images)."""
+
+
+def rotation_in_bin(rng: np.random.Generator, low: float, high: float, centre: np.ndarray,
+                    max_shift_mm: float) -> sitk.VersorRigid3DTransform:
+    """A fixed-to-moving rigid transform about ``centre``: angle uniform in ``[low, high)`` degrees about a uniform
+    axis, shift of uniform direction and length up to ``max_shift_mm``."""
+    axis = rng.normal(size=3)
+    direction = rng.normal(size=3)
+    transform = sitk.VersorRigid3DTransform()
+    transform.SetCenter(centre.tolist())
+    transform.SetRotation((axis / np.linalg.norm(axis)).tolist(), math.radians(rng.uniform(low, high)))
+    transform.SetTranslation((direction / np.linalg.norm(direction) * rng.uniform(0, max_shift_mm)).tolist())
+    return transform
+
+
+# ---------------------------------------------------------------------------------------------------------- methods
+def _mask(fixed: sitk.Image) -> sitk.Image:
+    return sitk.BinaryDilate(foreground_mask(fixed), [Refinement().mask_margin_voxels] * 3)
+
+
+def _sitk_initialised(kind: int) -> Callable[[sitk.Image, sitk.Image, Path], sitk.Transform]:
+    def run(fixed: sitk.Image, moving: sitk.Image, folder: Path) -> sitk.Transform:
+        fixed, moving = sitk.Cast(fixed, sitk.sitkFloat32), sitk.Cast(moving, sitk.sitkFloat32)
+        start = sitk.CenteredTransformInitializer(fixed, moving, sitk.VersorRigid3DTransform(), kind)
+        return refine_transform(fixed, moving, start, (_mask(fixed), None))
+    return run
+
+
+def _sitk_exhaustive(fixed: sitk.Image, moving: sitk.Image, folder: Path) -> sitk.Transform:
+    """Mattes MI over a grid of Euler angles (45-degree steps, 4x shrunk), then the local optimiser from the best."""
+    fixed, moving = sitk.Cast(fixed, sitk.sitkFloat32), sitk.Cast(moving, sitk.sitkFloat32)
+    start = sitk.CenteredTransformInitializer(fixed, moving, sitk.Euler3DTransform(),
+                                              sitk.CenteredTransformInitializerFilter.GEOMETRY)
+    method = sitk.ImageRegistrationMethod()
+    method.SetMetricAsMattesMutualInformation(32)
+    method.SetMetricSamplingStrategy(method.RANDOM)
+    method.SetMetricSamplingPercentage(0.05, 0)
+    method.SetInterpolator(sitk.sitkLinear)
+    method.SetShrinkFactorsPerLevel([4])
+    method.SetSmoothingSigmasPerLevel([2.0])
+    method.SmoothingSigmasAreSpecifiedInPhysicalUnitsOn()
+    method.SetOptimizerAsExhaustive(numberOfSteps=[4, 2, 4, 0, 0, 0], stepLength=math.pi / 4)
+    method.SetOptimizerScales([1, 1, 1, 1, 1, 1])
+    method.SetInitialTransform(start, inPlace=True)
+    method.Execute(fixed, moving)
+    rigid = sitk.VersorRigid3DTransform()
+    rigid.SetCenter(start.GetCenter())
+    rigid.SetMatrix(start.GetMatrix())
+    rigid.SetTranslation(start.GetTranslation())
+    return refine_transform(fixed, moving, rigid, (_mask(fixed), None))
+
+
+def _dpcn(refine: bool) -> Callable[[sitk.Image, sitk.Image, Path], sitk.Transform]:
+    def run(fixed: sitk.Image, moving: sitk.Image, folder: Path) -> sitk.Transform:
+        return register(fixed, moving, refine=refine).fixed_to_moving
+    return run
+
+
+def _ants(multistart: bool) -> Callable[[sitk.Image, sitk.Image, Path], sitk.Transform]:
+    def run(fixed: sitk.Image, moving: sitk.Image, folder: Path) -> sitk.Transform:
+        import ants
+
+        sitk.WriteImage(fixed, str(folder / "fixed.nii.gz"))
+        sitk.WriteImage(moving, str(folder / "moving.nii.gz"))
+        fixed_ants = ants.image_read(str(folder / "fixed.nii.gz"))
+        moving_ants = ants.image_read(str(folder / "moving.nii.gz"))
+        options = {"outprefix": str(folder / "ants_")}
+        if multistart:
+            options["initial_transform"] = ants.affine_initializer(fixed_ants, moving_ants,
+                                                                   txfn=str(folder / "initial.mat"))
+        result = ants.registration(fixed_ants, moving_ants, type_of_transform="Rigid", **options)
+        # ANTs' forward transforms map fixed points to moving ones (ITK's direction); the last is the rigid one.
+        return sitk.ReadTransform(result["fwdtransforms"][-1])
+    return run
+
+
+def _elastix(fixed: sitk.Image, moving: sitk.Image, folder: Path) -> sitk.Transform:
+    import itk
+
+    sitk.WriteImage(fixed, str(folder / "fixed.nii.gz"))
+    sitk.WriteImage(moving, str(folder / "moving.nii.gz"))
+    parameters = itk.ParameterObject.New()
+    parameters.AddParameterMap(parameters.GetDefaultParameterMap("rigid"))
+    _, result = itk.elastix_registration_method(itk.imread(str(folder / "fixed.nii.gz"), itk.F),
+                                                itk.imread(str(folder / "moving.nii.gz"), itk.F),
+                                                parameter_object=parameters, log_to_console=False,
+                                                output_directory=str(folder))
+    found = result.GetParameterMap(0)
+    values = [float(v) for v in found["TransformParameters"]]
+    # elastix's EulerTransform maps fixed points to moving ones: angles (x, y, z) in radians, then the translation.
+    transform = sitk.Euler3DTransform()
+    transform.SetCenter([float(v) for v in found["CenterOfRotationPoint"]])
+    transform.SetComputeZYX(found["ComputeZYX"][0] == "true" if "ComputeZYX" in found else False)
+    transform.SetRotation(*values[:3])
+    transform.SetTranslation(values[3:])
+    return transform
+
+
+METHODS: dict[str, tuple[str, str | None, Callable[[sitk.Image, sitk.Image, Path], sitk.Transform]]] = {
+    "dpcn": ("dpcn_med learning-free + refinement (defaults)", None, _dpcn(True)),
+    "dpcn-global": ("dpcn_med learning-free, global estimate only", None, _dpcn(False)),
+    "sitk-geometry": ("SimpleITK MI from GEOMETRY initialiser", None,
+                      _sitk_initialised(sitk.CenteredTransformInitializerFilter.GEOMETRY)),
+    "sitk-moments": ("SimpleITK MI from MOMENTS initialiser", None,
+                     _sitk_initialised(sitk.CenteredTransformInitializerFilter.MOMENTS)),
+    "sitk-exhaustive": ("SimpleITK MI after an exhaustive Euler-angle search", None, _sitk_exhaustive),
+    "ants-rigid": ("ANTs Rigid", "antspyx", _ants(False)),
+    "ants-multistart": ("ANTs Rigid after affine_initializer", "antspyx", _ants(True)),
+    "elastix-rigid": ("elastix rigid (default map)", "itk-elastix", _elastix),
+}
+"""name: (description, distribution it needs beyond dpcn_med's, ``(fixed, moving, folder) -> fixed_to_moving``)."""
+
+
+def available_methods() -> tuple[str, ...]:
+    """The methods whose packages are installed."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    def installed(distribution: str | None) -> bool:
+        if distribution is None:
+            return True
+        try:
+            version(distribution)
+        except PackageNotFoundError:
+            return False
+        return True
+
+    return tuple(name for name, (_, distribution, _) in METHODS.items() if installed(distribution))
+
+
+# ------------------------------------------------------------------------------------------------------ measuring
+def _reset_peak() -> float | None:
+    """Reset this process's resident-set high-water mark (Linux) and return the current RSS in MiB."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return _status_mib("VmRSS")
+    except OSError:
+        return None
+
+
+def _status_mib(field: str) -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) / 1024
+    raise OSError(field)
+
+
+def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | None = None) -> list[dict]:
+    """Every method on every pair: one row per (case, bin, trial, method) with TRE (mm), seconds and peak MiB."""
+    installed = available_methods()
+    methods = tuple(m for m in config.methods if m in installed or m not in METHODS) or installed
+    for kind, names, known in (("case", config.cases, CASES), ("method", methods, METHODS)):
+        unknown = [name for name in names if name not in known]
+        if unknown:
+            raise InputError(f"unknown {kind} {', '.join(unknown)}; use one of {', '.join(known)}")
+    rows = []
+    folder = Path(tempfile.mkdtemp(prefix="dpcn-med-benchmark-"))
+    try:
+        for case in config.cases:
+            fixed, moving_whole = CASES[case][2]()
+            corners, centre = foreground_corners(fixed), foreground_box(fixed)[0]
+            rng = np.random.default_rng([config.seed, list(CASES).index(case)])
+            for low, high in config.bins:
+                for trial in range(config.trials):
+                    truth = rotation_in_bin(rng, low, high, centre, config.max_shift_mm)
+                    moving = moved_copy(moving_whole, truth)
+                    for method in methods:
+                        before = _reset_peak()
+                        started = time.perf_counter()
+                        estimate = METHODS[method][2](fixed, moving, folder)
+                        seconds = time.perf_counter() - started
+                        peak = _status_mib("VmHWM") - before if before is not None else float("nan")
+                        error = target_registration_error(estimate, truth, corners)
+                        rows.append({"case": case, "bin": f"{low}-{high}", "trial": trial, "method": method,
+                                     "tre_mm": error, "seconds": seconds, "peak_mib": peak})
+                        if progress is not None:
+                            progress(f"{case} {low}-{high} deg #{trial + 1} {method}: {error:.2f} mm, {seconds:.1f} s")
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    return rows
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    """Per (case, method, bin): trials, success rate, median TRE, median seconds, median peak MiB."""
+    groups: dict[tuple[str, str, str], list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["case"], row["method"], row["bin"]), []).append(row)
+    return [{"case": case, "method": method, "bin": bin_, "trials": len(group),
+             "success": sum(r["tre_mm"] < SUCCESS_MM for r in group) / len(group),
+             "median_tre_mm": statistics.median(r["tre_mm"] for r in group),
+             "median_seconds": statistics.median(r["seconds"] for r in group),
+             "median_peak_mib": statistics.median(r["peak_mib"] for r in group)}
+            for (case, method, bin_), group in groups.items()]
+
+
+def markdown(summary: list[dict], config: BenchmarkConfig) -> str:
+    """Tables per case: success by rotation bin for every method, then runtime and memory."""
+    bins = [f"{low}-{high}" for low, high in config.bins]
+    methods = list(dict.fromkeys(r["method"] for r in summary))
+    lines = []
+    for case in dict.fromkeys(r["case"] for r in summary):
+        cells = {(r["method"], r["bin"]): r for r in summary if r["case"] == case}
+        lines += [f"### {CASES[case][0]}", "",
+                  "| method | " + " | ".join(f"{b} deg" for b in bins) + " | median TRE (mm) | median s | peak MiB |",
+                  "|---|" + "---|" * (len(bins) + 3)]
+        for method in methods:
+            row = [cells[(method, b)] for b in bins if (method, b) in cells]
+            if not row:
+                continue
+            lines.append(f"| {METHODS[method][0]} | " + " | ".join(f"{100 * r['success']:.0f}%" for r in row)
+                         + f" | {statistics.median(r['median_tre_mm'] for r in row):.2f}"
+                         + f" | {statistics.median(r['median_seconds'] for r in row):.1f}"
+                         + f" | {statistics.median(r['median_peak_mib'] for r in row):.0f} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def figure(summary: list[dict], config: BenchmarkConfig, path: Path) -> None:
+    """Success rate against initial rotation, one panel per case, one line per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from dpcn_med import io
+
+    cases = list(dict.fromkeys(r["case"] for r in summary))
+    centres = [(low + high) / 2 for low, high in config.bins]
+    bins = [f"{low}-{high}" for low, high in config.bins]
+    figure_, axes = plt.subplots(1, len(cases), figsize=(4.5 * len(cases), 3.6), squeeze=False,
+                                 constrained_layout=True)
+    for ax, case in zip(axes[0], cases):
+        for method in dict.fromkeys(r["method"] for r in summary):
+            cells = {r["bin"]: r for r in summary if r["case"] == case and r["method"] == method}
+            ax.plot(centres, [100 * cells[b]["success"] if b in cells else np.nan for b in bins], "o-",
+                    label=METHODS[method][0], lw=2.5 if method == "dpcn" else 1.2)
+        ax.set(title=CASES[case][0], xlabel="initial rotation (deg)", ylabel=f"success (TRE < {SUCCESS_MM:g} mm), %",
+               ylim=(-5, 105), xticks=[b[0] for b in config.bins] + [config.bins[-1][1]])
+    axes[0][-1].legend(fontsize=7, loc="lower left")
+    with io.atomic_output(path) as staged:
+        figure_.savefig(staged, dpi=110)
+    plt.close(figure_)
+
+
+def write_outputs(rows: list[dict], config: BenchmarkConfig, output: str | os.PathLike, *, command: str) -> str:
+    """``results.csv`` (every registration), ``summary.md`` and ``success.png`` in ``output``; returns the text."""
+    import csv
+    import io as text_io
+
+    from dpcn_med import io
+
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    buffer = text_io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    io.write_text(buffer.getvalue(), output / "results.csv")
+    summary = summarise(rows)
+    text = (f"# dpcn_med against SimpleITK, ANTs and elastix\n\nGenerated by `{command}` on "
+            f"{time.strftime('%Y-%m-%d')}; {config.trials} pose(s) per case and bin, rotation angle uniform in the "
+            f"bin about a uniform axis, translation up to {config.max_shift_mm:g} mm; success is a TRE under "
+            f"{SUCCESS_MM:g} mm over the fixed foreground's box; times on one CPU process, peak memory the "
+            f"resident-set growth during the call.\n\n![success against initial rotation](success.png)\n\n"
+            + markdown(summary, config))
+    io.write_text(text, output / "summary.md")
+    figure(summary, config, output / "success.png")
+    return text
