@@ -328,8 +328,7 @@ def _benchmark(args: argparse.Namespace) -> int:
                "methods": tuple(args.methods) if args.methods else None, "seed": args.seed}
     config = replace(config, **{k: v for k, v in changes.items() if v is not None})
     rows = benchmark.run_benchmark(config, progress=lambda line: print(line, file=sys.stderr))
-    command = "dpcn-med " + " ".join(sys.argv[1:]) if sys.argv[0].endswith("dpcn-med") else "dpcn-med benchmark"
-    print(benchmark.write_outputs(rows, config, args.output, command=command))
+    print(benchmark.write_outputs(rows, config, args.output, command=args.command_line))
     return EXIT_OK
 
 
@@ -346,6 +345,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run ``dpcn-med`` with ``argv`` (default: the command line) and return its exit code."""
     parser = _parser()
     args = parser.parse_args(argv)
+    args.command_line = " ".join(["dpcn-med", *(sys.argv[1:] if argv is None else argv)])
     verbose = getattr(args, "verbose", False)
     try:
         if args.command == "register":
