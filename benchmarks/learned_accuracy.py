@@ -18,12 +18,11 @@ from pathlib import Path
 
 import torch
 
-from dpcn_med.geometry import geodesic_distance
 from dpcn_med.models import load_model
 from dpcn_med.solver import solve
 from dpcn_med.train import load_config
 from dpcn_med.train.data import validation_set, volume_bank
-from dpcn_med.train.loop import SUCCESS_DEGREES, SUCCESS_VOXELS
+from dpcn_med.train.loop import SUCCESS_DEGREES, SUCCESS_VOXELS, pose_errors
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
@@ -32,13 +31,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def errors(predict, pairs) -> tuple[list[float], list[float]]:
-    """Rotation (degrees) and translation (voxels) errors of ``predict(fixed, moving) -> (rotation, translation)``."""
+    """Rotation (degrees) and translation (voxels) errors of ``predict(fixed, moving)``, which returns a solver or
+    model result (anything with ``rotation`` and ``translation``)."""
     rotations, translations = [], []
     with torch.no_grad():
         for fixed, moving, target in pairs:
-            rotation, translation = predict(fixed, moving)
-            rotations += torch.rad2deg(geodesic_distance(rotation.double(), target.rotation.double())).tolist()
-            translations += (translation.double() - target.translation.double()).norm(dim=-1).tolist()
+            rotation, translation = pose_errors(predict(fixed, moving), target)
+            rotations += rotation.tolist()
+            translations += translation.tolist()
     return rotations, translations
 
 
@@ -64,15 +64,13 @@ def main(argv: list[str] | None = None) -> int:
             label = "learning-free solver"
 
             def predict(fixed, moving):
-                result = solve(fixed, moving, mode, bandwidth=bandwidth)
-                return result.rotation, result.translation
+                return solve(fixed, moving, mode, bandwidth=bandwidth)
         else:
             model = load_model(name, device=device)
             label = f"`{name}`"
 
             def predict(fixed, moving, model=model):
-                output = model(fixed, moving, mode=mode)
-                return output.rotation, output.translation
+                return model(fixed, moving, mode=mode)
         rotation, translation = errors(predict, pairs)
         success = sum(r < SUCCESS_DEGREES and t < SUCCESS_VOXELS for r, t in zip(rotation, translation))
         lines.append(f"| {label} | {len(rotation)} | {100 * success / len(rotation):.1f}% | "

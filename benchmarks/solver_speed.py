@@ -41,26 +41,9 @@ def _elapsed(function, device: torch.device) -> float:
     return time.perf_counter() - began
 
 
-def _status_mib(field: str) -> float:
-    """A memory line of /proc/self/status (VmRSS, VmHWM) in MiB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1]) / 1024
-    raise KeyError(field)
-
-
-def _reset_peak_rss() -> float:
-    """Reset the process's resident-set high-water mark (Linux ``clear_refs``) and return the current RSS in MiB.
-
-    Loading the sample volume peaks higher than the solver does, so without the reset the peak would say nothing
-    about the solver.
-    """
-    Path("/proc/self/clear_refs").write_text("5")
-    return _status_mib("VmRSS")
-
-
 def worker(device_name: str, bandwidth: int, repeats: int) -> dict:
     """Measure one configuration in this process and return the numbers."""
+    from dpcn_med.benchmark import reset_peak_rss, status_mib
     from dpcn_med.preprocess import solver_grid
     from dpcn_med.samples import mni152_t1
     from dpcn_med.solver import solve
@@ -74,7 +57,7 @@ def worker(device_name: str, bandwidth: int, repeats: int) -> dict:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
         torch.cuda.reset_peak_memory_stats(device)
-    baseline_rss = _reset_peak_rss()
+    baseline_rss = reset_peak_rss()
 
     cold = _elapsed(lambda: solve(fixed, moving), device)  # builds and caches the Wigner-d table
     for _ in range(2):
@@ -90,7 +73,7 @@ def worker(device_name: str, bandwidth: int, repeats: int) -> dict:
         peak = torch.cuda.max_memory_allocated(device) / 2 ** 20
         peak_kind = "CUDA allocated"
     else:
-        peak = _status_mib("VmHWM") - baseline_rss
+        peak = status_mib("VmHWM") - baseline_rss
         peak_kind = "peak RSS above the inputs"
     return {
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else

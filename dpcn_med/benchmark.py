@@ -229,20 +229,27 @@ def available_methods() -> tuple[str, ...]:
 
 
 # ------------------------------------------------------------------------------------------------------ measuring
-def _reset_peak() -> float | None:
-    """Reset this process's resident-set high-water mark (Linux) and return the current RSS in MiB."""
+def reset_peak_rss() -> float | None:
+    """Reset this process's resident-set high-water mark (Linux ``clear_refs``) and return the current RSS in MiB;
+    ``None`` where the system does not offer it. Loading inputs often peaks higher than the call measured after it,
+    so without the reset the peak would say nothing about that call."""
     try:
         Path("/proc/self/clear_refs").write_text("5")
-        return _status_mib("VmRSS")
+        return status_mib("VmRSS")
     except OSError:
         return None
 
 
-def _status_mib(field: str) -> float:
+def status_mib(field: str) -> float:
+    """A memory line of ``/proc/self/status`` (``VmRSS``, ``VmHWM``) in MiB.
+
+    Raises:
+        OSError: no such file or line (not Linux).
+    """
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith(field + ":"):
             return int(line.split()[1]) / 1024
-    raise OSError(field)
+    raise OSError(f"/proc/self/status has no {field} line")
 
 
 def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | None = None) -> list[dict]:
@@ -265,11 +272,11 @@ def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | Non
                     truth = rotation_in_bin(rng, low, high, centre, config.max_shift_mm)
                     moving = moved_copy(moving_whole, truth)
                     for method in methods:
-                        before = _reset_peak()
+                        before = reset_peak_rss()
                         started = time.perf_counter()
                         estimate = METHODS[method][2](fixed, moving, folder)
                         seconds = time.perf_counter() - started
-                        peak = _status_mib("VmHWM") - before if before is not None else float("nan")
+                        peak = status_mib("VmHWM") - before if before is not None else float("nan")
                         error = target_registration_error(estimate, truth, corners)
                         rows.append({"case": case, "bin": f"{low}-{high}", "trial": trial, "method": method,
                                      "tre_mm": error, "seconds": seconds, "peak_mib": peak})

@@ -27,7 +27,7 @@ from dpcn_med import __version__, io
 from dpcn_med.geometry import geodesic_distance
 from dpcn_med.models import DPCN, DPCNOutput, pose_loss, save_model
 from dpcn_med.models.weights import unique_state
-from dpcn_med.solver import PoseTarget
+from dpcn_med.solver import PoseTarget, SolveResult
 from dpcn_med.train import distributed
 from dpcn_med.train.config import TrainConfig
 from dpcn_med.train.data import sample_pairs, validation_set, volume_bank
@@ -52,8 +52,9 @@ def learning_rate(step: int, config: TrainConfig) -> float:
     return settings.learning_rate * (settings.final_fraction + (1 - settings.final_fraction) * cosine)
 
 
-def pose_errors(output: DPCNOutput, target: PoseTarget) -> tuple[Tensor, Tensor]:
-    """``(B,)`` rotation errors in degrees and ``(B,)`` translation errors in voxels."""
+def pose_errors(output: DPCNOutput | SolveResult, target: PoseTarget) -> tuple[Tensor, Tensor]:
+    """``(B,)`` rotation errors in degrees and ``(B,)`` translation errors in voxels of a model's or the solver's
+    result."""
     rotation = torch.rad2deg(geodesic_distance(output.rotation.double(), target.rotation.double()))
     translation = (output.translation.double() - target.translation.double()).norm(dim=-1)
     return rotation, translation
