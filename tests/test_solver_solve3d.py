@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from dpcn_med.errors import InputError
-from dpcn_med.geometry import half_turns
+from dpcn_med.geometry import half_turns, rotation_angle
 from dpcn_med.solver import SolverConfig, StageTemperatures, solve
 from dpcn_med.solver.so3 import sphere_correlation
 from dpcn_med.solver.solve3d import _candidate_scores, _spheres
@@ -110,6 +110,37 @@ class TestRecoveryOnRealAnatomy:
         assert abs(sphere[0] - sphere[1]).item() < 0.01 * sphere[0].item()
         peaks = _candidate_scores(fixed, moving, pose.scale * rotations, size, 0.25)[0]
         assert peaks[0].item() > 2 * peaks[1].item()
+
+
+class TestAlternatives:
+    def test_runner_ups_come_back_only_when_asked(self):
+        fixed = volume_grid("mni", 32)
+        assert solve(fixed, random_poses(1, 32, seed=20)[0].moving_from(fixed)).alternatives is None
+
+    def test_runner_ups_are_other_rotations_and_include_the_mirror_twin(self):
+        size = 64
+        fixed = volume_grid("mni", size)
+        pose = random_poses(1, size, seed=14)[0]
+        moving = pose.moving_from(fixed)
+        plain = solve(fixed, moving, "rigid")
+        result = solve(fixed, moving, "rigid", alternatives=7)
+        torch.testing.assert_close(result.rotation, plain.rotation)  # asking for them changes nothing else
+        torch.testing.assert_close(result.translation, plain.translation)
+        alternatives = result.alternatives
+        assert alternatives.rotation.shape == (1, 7, 3, 3) and alternatives.translation.shape == (1, 7, 3)
+        assert alternatives.scale.shape == alternatives.confidence.shape == alternatives.score.shape == (1, 7)
+        valid = alternatives.score[0] > float("-inf")
+        assert 1 <= valid.sum() <= 7
+        rotations = alternatives.rotation[0, valid]
+        torch.testing.assert_close(rotations @ rotations.transpose(-1, -2), torch.eye(3).expand_as(rotations),
+                                   atol=1e-4, rtol=0)
+        away = torch.rad2deg(rotation_angle(rotations @ result.rotation[0].T))
+        assert (away > SolverConfig().duplicate_degrees - 1).all()  # near-duplicates of the choice were dropped
+        assert torch.isfinite(alternatives.translation[0, valid]).all()
+        assert ((alternatives.confidence >= 0) & (alternatives.confidence <= 1)).all()
+        # The symmetric template's spectrum cannot tell the pose from its mirror twin: the twin must be offered.
+        twin = (pose.rotation @ half_turns(torch.device("cpu"), torch.float64)[1]).float()
+        assert torch.rad2deg(rotation_angle(rotations @ twin.T)).min() < 5.0
 
 
 class TestProfile:

@@ -37,6 +37,8 @@ class SolverConfig:
         candidate_size: grid size on which all candidates are scored by their translation peak (downsampled).
         finalists: the best this many are scored again on a grid of ``finalist_size``.
         finalist_size: grid size of the second scoring.
+        alternatives: also return up to this many runner-up candidates (the other finalists first), each with its own
+            scale and translation, for a choice by another similarity (:attr:`SolveResult.alternatives`); 0: none.
         upsample: sub-grid refinement factor of the translation and scale peaks.
         log_polar_angles: 2-D only: angular samples of the log-polar grid over 180 degrees.
         log_polar_radii: 2-D only: log-radial samples.
@@ -65,6 +67,7 @@ class SolverConfig:
     candidate_size: int = 32
     finalists: int = 4
     finalist_size: int = 64
+    alternatives: int = 0
     upsample: int = 16
     log_polar_angles: int = 360
     log_polar_radii: int = 256

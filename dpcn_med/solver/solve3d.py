@@ -31,6 +31,28 @@ from dpcn_med.solver.validation import check_bandwidth, check_grids, check_mode
 
 
 @dataclass
+class Alternatives:
+    """The runner-up candidates of :func:`solve`, best first, each with its own scale and translation: global poses
+    for a later choice by an image similarity that phase correlation lacks (mutual information across modalities).
+
+    Attributes:
+        rotation: ``(batch, A, 3, 3)``, as :attr:`SolveResult.rotation`.
+        scale: ``(batch, A)``.
+        translation: ``(batch, A, 3)`` voxels ``(x, y, z)``.
+        confidence: ``(batch, A)`` softmax mass of each translation peak, as :attr:`SolveResult.confidence`.
+        score: ``(batch, A)`` the solver's ranking score: the translation-peak height on the finalist grid for
+            the finalists, on the coarse grid after them; ``-inf`` marks a slot for which no plausible candidate was
+            left: ignore its pose.
+    """
+
+    rotation: Tensor
+    scale: Tensor
+    translation: Tensor
+    confidence: Tensor
+    score: Tensor
+
+
+@dataclass
 class SolveResult:
     """Pose found by :func:`solve`: ``fixed(p) ~ moving(scale * rotation @ p + translation)``.
 
@@ -46,6 +68,7 @@ class SolveResult:
         translation_estimate: the translation stage of the chosen candidate (shift before ``scale * rotation``).
         candidates: ``(batch,)`` number of rotation candidates left after dropping near-duplicates.
         timings: seconds per stage when ``profile=True`` (empty otherwise).
+        alternatives: the runner-up candidates when ``alternatives > 0`` in the config, else ``None``.
     """
 
     rotation: Tensor
@@ -57,6 +80,7 @@ class SolveResult:
     translation_estimate: TranslationEstimate
     candidates: Tensor
     timings: dict[str, float]
+    alternatives: Alternatives | None = None
 
 
 def _spheres(fixed: Tensor, moving: Tensor, config: SolverConfig, directions: Tensor, weights: Tensor
@@ -112,9 +136,11 @@ def _candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, 
     return surface.flatten(2).amax(-1)
 
 
-def _choose_candidate(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score: Tensor, keep: Tensor,
-                      config: SolverConfig) -> Tensor:
-    """Index ``(batch,)`` of the best candidate ``linear (batch, K, 3, 3)`` (scaled rotations).
+def _rank_candidates(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score: Tensor, keep: Tensor,
+                     config: SolverConfig) -> tuple[Tensor, Tensor]:
+    """The candidates ``linear (batch, K, 3, 3)`` (scaled rotations) ranked, best first: indices ``(batch, K)`` and
+    scores ``(batch, K)``: the finalists by their fine score, then the others by their coarse score; ``-inf`` marks
+    an implausible candidate.
 
     Candidates whose sphere correlation falls more than ``sphere_margin`` below the best are implausible; the rest
     are scored by their translation peak on a coarse grid, and the ``finalists`` best are scored again on a finer one.
@@ -129,7 +155,27 @@ def _choose_candidate(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_scor
     finalist_linear = linear.gather(1, finalists.indices[..., None, None].expand(-1, -1, 3, 3))
     fine = _candidate_scores(fixed, moving, finalist_linear, config.finalist_size, config.taper)
     fine = fine.masked_fill(finalists.values == float("-inf"), float("-inf"))
-    return finalists.indices.gather(1, fine.argmax(-1, keepdim=True))[:, 0]
+    ranked = fine.sort(-1, descending=True)
+    # The other candidates follow, by their coarse score (-inf: implausible).
+    rest = coarse.scatter(1, finalists.indices, float("-inf")).sort(-1, descending=True)
+    others = coarse.shape[1] - finalists.indices.shape[1]
+    return (torch.cat([finalists.indices.gather(1, ranked.indices), rest.indices[:, :others]], 1),
+            torch.cat([ranked.values, rest.values[:, :others]], 1))
+
+
+def _alternatives(fixed: Tensor, moving: Tensor, rotation: Tensor, scale: Tensor, score: Tensor,
+                  temperature: Tensor | float, config: SolverConfig) -> Alternatives:
+    """Translations for the runner-ups ``rotation (batch, A, 3, 3)``, ``scale (batch, A)``: the same full-resolution
+    translation stage as the chosen candidate's, one batch of ``batch * A`` volumes."""
+    batch, count = scale.shape
+    linear = scale[..., None, None] * rotation
+    compensated = warp(moving, linear)[:, 0].flatten(0, 1)  # (batch * A, N, N, N)
+    repeated = fixed[:, None].expand(-1, count, *fixed.shape[1:]).flatten(0, 1)
+    estimate = phase_translation(repeated, compensated, temperature, dim=3, taper=config.taper, refine=True,
+                                 upsample=config.upsample)
+    translation = (linear @ estimate.shift.view(batch, count, 3, 1))[..., 0]
+    return Alternatives(rotation=rotation, scale=scale, translation=translation,
+                        confidence=estimate.peak.mass.view(batch, count), score=score)
 
 
 def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: SolverConfig | None = None,
@@ -162,7 +208,8 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         the highest translation peak wins, its rotation is refined
         continuously on the sphere, and scale and translation are measured again at full resolution. With
         ``refine=False`` every estimate is a soft arg-max, differentiable with respect to both inputs and the
-        temperatures.
+        temperatures. With ``alternatives=A`` the ``A`` runner-up finalists come back as well, each with its own
+        full-resolution translation (:class:`Alternatives`).
 
     References:
         Chen et al., "DPCN++: Differentiable Phase Correlation Network for Versatile Pose Registration", IEEE TPAMI
@@ -207,9 +254,19 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
             candidate_scale = scale_stage(candidates).scale
         else:
             candidate_scale = torch.ones(batch, count, device=fixed.device, dtype=fixed.dtype)
-        best = _choose_candidate(fixed_volume, moving_volume, candidate_scale[..., None, None] * candidates,
-                                 sphere_score, keep, config)
-    rotation = candidates[torch.arange(batch, device=fixed.device), best]
+        ranked, ranked_score = _rank_candidates(fixed_volume, moving_volume,
+                                                candidate_scale[..., None, None] * candidates, sphere_score, keep,
+                                                config)
+    rows = torch.arange(batch, device=fixed.device)
+    rotation = candidates[rows, ranked[:, 0]]
+    alternatives = None
+    if config.alternatives > 0:
+        with clock("alternatives"), torch.no_grad():
+            others = ranked[:, 1:1 + config.alternatives]
+            alternatives = _alternatives(fixed_volume, moving, candidates[rows[:, None], others],
+                                         candidate_scale[rows[:, None], others],
+                                         ranked_score[:, 1:1 + config.alternatives], temperatures.translation,
+                                         config)
     if config.refine:  # inference only: a local search has no useful gradient, so build no graph for it
         with clock("rotation refinement"), torch.no_grad():
             fine_sphere = isht(fixed_coeffs, degrees, bandwidth * config.refine_oversample)  # band-limited, finely
@@ -231,4 +288,4 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
     return SolveResult(rotation=rotation, scale=scale, translation=translation,
                        confidence=translation_estimate.peak.mass, rotation_log_prob=rotation_log_prob,
                        scale_estimate=scale_estimate, translation_estimate=translation_estimate,
-                       candidates=keep.sum(-1), timings=clock.seconds)
+                       candidates=keep.sum(-1), timings=clock.seconds, alternatives=alternatives)
