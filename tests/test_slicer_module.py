@@ -46,6 +46,7 @@ from DPCNRegistrationLib.volumes import (  # noqa: E402
     array_to_matrix,
     ijk_to_ras,
     image_to_volume,
+    mask_on_volume,
     matrix_to_array,
     parent_to_world,
     transform_to_world,
@@ -183,6 +184,64 @@ class TestVolumes:
         node.SetAndObserveTransformNodeID(grid.GetID())
         with pytest.raises(ValueError, match="warp: is not a linear transform"):
             parent_to_world(node)
+
+
+class TestMasks:
+    @pytest.fixture
+    def volume(self):
+        scene = slicer.vtkMRMLScene()
+        node = slicer.vtkMRMLScalarVolumeNode()
+        node.SetName("volume")
+        scene.AddNode(node)
+        image_to_volume(oblique_image(), node)
+        return scene, node, volume_to_image(node)
+
+    @staticmethod
+    def label_map(scene, image: sitk.Image, name: str = "label"):
+        node = slicer.vtkMRMLLabelMapVolumeNode()
+        node.SetName(name)
+        scene.AddNode(node)
+        image_to_volume(image, node)
+        return node
+
+    def test_a_label_map_on_the_volumes_grid_is_its_non_zero_voxels(self, volume):
+        scene, node, image = volume
+        labels = np.zeros(sitk.GetArrayViewFromImage(image).shape, np.uint8)
+        labels[2:5, 3:7, 1:9] = 7  # one label, any value
+        label_image = sitk.GetImageFromArray(labels)
+        label_image.CopyInformation(image)
+        mask = mask_on_volume(self.label_map(scene, label_image), node, image)
+        assert mask.GetPixelID() == sitk.sitkUInt8 and mask.GetSize() == image.GetSize()
+        assert mask.GetOrigin() == image.GetOrigin() and mask.GetDirection() == image.GetDirection()
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(mask), (labels != 0).astype(np.uint8))
+
+    def test_a_label_map_moved_in_the_views_covers_what_it_overlays(self, volume):
+        """The label map hangs under a transform that shifts it by two voxels along the volume's first axis: the
+        mask is the label shifted by two voxels on the volume's grid."""
+        scene, node, image = volume
+        labels = np.zeros(sitk.GetArrayViewFromImage(image).shape, np.uint8)
+        labels[2:5, 3:7, 1:6] = 1
+        label_image = sitk.GetImageFromArray(labels)
+        label_image.CopyInformation(image)
+        label = self.label_map(scene, label_image)
+        shift = np.eye(4)
+        shift[:3, 3] = 2 * ijk_to_ras(node)[:3, 0]
+        label.SetAndObserveTransformNodeID(linear_transform(scene, shift, "shift").GetID())
+        expected = np.zeros_like(labels)
+        expected[2:5, 3:7, 3:8] = 1
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(mask_on_volume(label, node, image)), expected)
+
+    def test_a_label_map_that_covers_nothing_is_refused(self, volume):
+        scene, node, image = volume
+        empty = sitk.Image(image.GetSize(), sitk.sitkUInt8)
+        empty.CopyInformation(image)
+        with pytest.raises(ValueError, match="elsewhere: the mask covers no voxel of volume"):
+            mask_on_volume(self.label_map(scene, empty, "elsewhere"), node, image)
+
+    def test_masks_become_dpcn_med_arguments(self):
+        command = process.command("f.nrrd", "m.nrrd", "out", Options(), fixed_mask="fm.nrrd", python="python")
+        assert command[command.index("--fixed-mask") + 1] == "fm.nrrd" and "--moving-mask" not in command
+        assert command[-2:] == ["--progress", "json"]
 
 
 class TestTransforms:
@@ -335,6 +394,32 @@ class TestRegistration:
                                   sitk.GetArrayFromImage(reference).ravel())[0, 1]
         assert correlation > 0.95
 
+    def test_a_fixed_mask_reaches_dpcn_med_and_the_slab_registers(self, tmp_path):
+        """Only the upper 60% of the fixed head (a label map drawn on it) against the whole moved head."""
+        fixed_path = shared_path("seg3d/MR.nii.gz")
+        image = sitk.ReadImage(str(fixed_path))
+        corners = foreground_corners(image)
+        truth = random_similarity(np.random.default_rng(12), corners.mean(axis=0), max_shift_mm=30)
+        io.write_image(moved_copy(image, truth), tmp_path / "moving.nii.gz")
+        scene = slicer.vtkMRMLScene()
+        fixed = load_volume(scene, fixed_path, "MR")
+        moving = load_volume(scene, tmp_path / "moving.nii.gz", "MR moved")
+        labels = np.zeros(sitk.GetArrayViewFromImage(image).shape, np.uint8)
+        labels[int(0.4 * labels.shape[0]):] = 1  # slices along the image's third axis
+        label_image = sitk.GetImageFromArray(labels)
+        label_image.CopyInformation(image)
+        slab = TestMasks.label_map(scene, label_image, "slab")
+
+        result = register_volumes(fixed, moving, QUICK, fixed_mask=slab)
+        assert result.report["inputs"]["fixed_mask"].endswith("fixed_mask.nrrd")
+        assert result.report["inputs"]["moving_mask"] is None
+        kept = np.array([p for p in corners if image.TransformPhysicalPointToContinuousIndex(p.tolist())[2]
+                         >= 0.4 * labels.shape[0]])
+        moved_points = np.array([truth.TransformPoint(p.tolist()) for p in kept])
+        world = parent_to_world(moving) @ RAS_FROM_LPS @ homogeneous(moved_points)
+        error = np.linalg.norm((RAS_FROM_LPS @ world).T[:, :3] - kept, axis=1)
+        assert error.max() < 2.0, f"corner errors {np.round(error, 2)} mm"
+
     def test_transform_node_equals_the_cli_transform_file_read_by_slicer(self, tmp_path):
         """The real MRI-DIR CT onto its T2 (unaligned scanner frames): the module's node and the CLI's .tfm read
         through vtkMRMLTransformStorageNode give the same matrix."""
@@ -374,6 +459,8 @@ class TestRegistrationFailures:
             Registration(fixed, fixed)
         with pytest.raises(ValueError, match="fixed: the output volume is an input"):
             Registration(fixed, moving, output_volume=fixed)
+        with pytest.raises(ValueError, match="moving: the fixed mask is one of the volumes being registered"):
+            Registration(fixed, moving, fixed_mask=moving)
         empty = slicer.vtkMRMLScalarVolumeNode()
         empty.SetName("empty")
         scene.AddNode(empty)

@@ -18,7 +18,7 @@ import vtk
 from DPCNRegistrationLib import dependencies
 from DPCNRegistrationLib.logic import Registration, RegistrationError, Result, register_volumes
 from DPCNRegistrationLib.process import Options
-from slicer import vtkMRMLLinearTransformNode, vtkMRMLScalarVolumeNode
+from slicer import vtkMRMLLabelMapVolumeNode, vtkMRMLLinearTransformNode, vtkMRMLScalarVolumeNode
 from slicer.parameterNodeWrapper import Choice, parameterNodeWrapper
 from slicer.ScriptedLoadableModule import (
     ScriptedLoadableModule,
@@ -54,6 +54,8 @@ class DPCNRegistrationParameterNode:
 
     fixedVolume: vtkMRMLScalarVolumeNode
     movingVolume: vtkMRMLScalarVolumeNode
+    fixedMask: vtkMRMLLabelMapVolumeNode
+    movingMask: vtkMRMLLabelMapVolumeNode
     mode: Annotated[str, Choice(["rigid", "similarity"])] = "rigid"
     model: Annotated[str, Choice(["default", "learning-free", "file"])] = "default"
     modelFile: pathlib.Path
@@ -149,6 +151,7 @@ class DPCNRegistrationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.ui.confidenceLabel.text = ""
             self.ui.progressBar.value = 0
             self._registration = self.logic.start(node.fixedVolume, node.movingVolume, self.logic.options(node),
+                                                  fixedMask=node.fixedMask, movingMask=node.movingMask,
                                                   outputTransform=node.outputTransform,
                                                   outputVolume=node.outputVolume)
             self._log(f"Registering {node.movingVolume.GetName()} onto {node.fixedVolume.GetName()}...")
@@ -215,6 +218,8 @@ class DPCNRegistrationLogic(ScriptedLoadableModuleLogic):
         logic = slicer.util.getModuleLogic("DPCNRegistration")
         result = logic.run(getNode("MRBrainT1"), getNode("CTBrain"))
         print(result.confidence, result.transform.GetName())
+
+    Masks (label maps; non-zero inside) restrict each volume to what they cover: ``fixedMask=``, ``movingMask=``.
     """
 
     def getParameterNode(self) -> DPCNRegistrationParameterNode:
@@ -278,19 +283,21 @@ class DPCNRegistrationLogic(ScriptedLoadableModuleLogic):
                                    skip_packages=list(dependencies.SLICER_PROVIDED_NAMES), prompt_install=False,
                                    skip_in_testing=False, requester="DPCNRegistration")
 
-    def start(self, fixed, moving, options: Options | None = None, *, outputTransform=None,
-              outputVolume=None) -> Registration:
+    def start(self, fixed, moving, options: Options | None = None, *, fixedMask=None, movingMask=None,
+              outputTransform=None, outputVolume=None) -> Registration:
         """Start registering ``moving`` onto ``fixed`` in a separate process; see :class:`Registration`."""
-        return Registration(fixed, moving, options, output_transform=outputTransform, output_volume=outputVolume,
+        return Registration(fixed, moving, options, fixed_mask=fixedMask, moving_mask=movingMask,
+                            output_transform=outputTransform, output_volume=outputVolume,
                             workspace=slicer.app.temporaryPath)
 
-    def run(self, fixed, moving, options: Options | None = None, *, outputTransform=None, outputVolume=None,
-            progress=None) -> Result:
+    def run(self, fixed, moving, options: Options | None = None, *, fixedMask=None, movingMask=None,
+            outputTransform=None, outputVolume=None, progress=None) -> Result:
         """Register ``moving`` onto ``fixed`` and wait; dependencies are installed first (with confirmation)."""
         if not self.installDependencies(askConfirmation=True):
             raise RuntimeError("DPCN Registration's dependencies are not installed")
-        return register_volumes(fixed, moving, options, output_transform=outputTransform, output_volume=outputVolume,
-                                progress=progress, workspace=slicer.app.temporaryPath)
+        return register_volumes(fixed, moving, options, fixed_mask=fixedMask, moving_mask=movingMask,
+                                output_transform=outputTransform, output_volume=outputVolume, progress=progress,
+                                workspace=slicer.app.temporaryPath)
 
 
 class DPCNRegistrationTest(ScriptedLoadableModuleTest):

@@ -20,7 +20,13 @@ import SimpleITK as sitk
 from DPCNRegistrationLib import process
 from DPCNRegistrationLib.process import Event, Job, Options
 from DPCNRegistrationLib.transforms import base_transform_node, place_result, read_transform_file
-from DPCNRegistrationLib.volumes import image_to_volume, parent_to_world, transform_to_world, volume_to_image
+from DPCNRegistrationLib.volumes import (
+    image_to_volume,
+    mask_on_volume,
+    parent_to_world,
+    transform_to_world,
+    volume_to_image,
+)
 
 CONFIDENCE_ATTRIBUTE = "DPCNRegistration.Confidence"
 
@@ -53,18 +59,22 @@ class Registration:
     Args:
         fixed, moving: scalar volume nodes, taken as shown (linear parent transforms applied).
         options: the registration's choices.
+        fixed_mask, moving_mask: optional label map nodes; only the voxels of each volume under its mask's non-zero
+            voxels (as shown in the views) are registered (:func:`~DPCNRegistrationLib.volumes.mask_on_volume`).
         output_transform: linear transform node to write (a new one when ``None``).
         output_volume: scalar volume node to fill with the resampled moving volume (none when ``None``).
         python: the Python to run dpcn-med with (default :func:`process.python_executable`).
         workspace: folder for the temporary files (default the system's); they are deleted when the run ends.
 
     Raises:
-        ValueError: a missing, empty or repeated volume, or an output that is one of the inputs.
+        ValueError: a missing, empty or repeated volume, a mask that covers none of its volume, or an output that is
+            one of the inputs.
     """
 
-    def __init__(self, fixed, moving, options: Options | None = None, *, output_transform=None, output_volume=None,
-                 python: str | None = None, workspace: str | None = None) -> None:
-        _check_inputs(fixed, moving, output_transform, output_volume)
+    def __init__(self, fixed, moving, options: Options | None = None, *, fixed_mask=None, moving_mask=None,
+                 output_transform=None, output_volume=None, python: str | None = None,
+                 workspace: str | None = None) -> None:
+        _check_inputs(fixed, moving, output_transform, output_volume, (fixed_mask, moving_mask))
         options = options or Options()
         self.fixed, self.moving, self.options = fixed, moving, options
         self.scene = moving.GetScene()
@@ -73,10 +83,18 @@ class Registration:
         self.started = time.perf_counter()
         self.folder = Path(tempfile.mkdtemp(prefix="DPCNRegistration-", dir=workspace))
         try:
-            fixed_path, moving_path = self.folder / "fixed.nrrd", self.folder / "moving.nrrd"
-            sitk.WriteImage(volume_to_image(fixed, world=parent_to_world(fixed)), str(fixed_path))
-            sitk.WriteImage(volume_to_image(moving, world=transform_to_world(self.base)), str(moving_path))
-            self.job = Job(process.command(fixed_path, moving_path, self.folder / "result", options, python=python))
+            paths = {}
+            for role, volume, world, mask in (("fixed", fixed, parent_to_world(fixed), fixed_mask),
+                                              ("moving", moving, transform_to_world(self.base), moving_mask)):
+                image = volume_to_image(volume, world=world)
+                paths[role] = self.folder / f"{role}.nrrd"
+                sitk.WriteImage(image, str(paths[role]))
+                if mask is not None:
+                    paths[f"{role}_mask"] = self.folder / f"{role}_mask.nrrd"
+                    sitk.WriteImage(mask_on_volume(mask, volume, image), str(paths[f"{role}_mask"]))
+            self.job = Job(process.command(paths["fixed"], paths["moving"], self.folder / "result", options,
+                                           fixed_mask=paths.get("fixed_mask"), moving_mask=paths.get("moving_mask"),
+                                           python=python))
         except BaseException:
             shutil.rmtree(self.folder, ignore_errors=True)
             raise
@@ -131,13 +149,14 @@ class Registration:
                       seconds=time.perf_counter() - self.started)
 
 
-def register_volumes(fixed, moving, options: Options | None = None, *, output_transform=None, output_volume=None,
-                     progress: Callable[[str, float], None] | None = None, python: str | None = None,
-                     workspace: str | None = None) -> Result:
+def register_volumes(fixed, moving, options: Options | None = None, *, fixed_mask=None, moving_mask=None,
+                     output_transform=None, output_volume=None, progress: Callable[[str, float], None] | None = None,
+                     python: str | None = None, workspace: str | None = None) -> Result:
     """Register ``moving`` onto ``fixed`` and wait for it (arguments as :class:`Registration`); ``progress`` gets
     ``(stage, fraction done)``."""
-    registration = Registration(fixed, moving, options, output_transform=output_transform,
-                                output_volume=output_volume, python=python, workspace=workspace)
+    registration = Registration(fixed, moving, options, fixed_mask=fixed_mask, moving_mask=moving_mask,
+                                output_transform=output_transform, output_volume=output_volume, python=python,
+                                workspace=workspace)
     try:
         while not registration.finished:
             for event in registration.poll():
@@ -150,7 +169,7 @@ def register_volumes(fixed, moving, options: Options | None = None, *, output_tr
     return registration.finish()
 
 
-def _check_inputs(fixed, moving, output_transform, output_volume) -> None:
+def _check_inputs(fixed, moving, output_transform, output_volume, masks=(None, None)) -> None:
     for role, node in (("fixed", fixed), ("moving", moving)):
         if node is None:
             raise ValueError(f"choose a {role} volume")
@@ -158,7 +177,12 @@ def _check_inputs(fixed, moving, output_transform, output_volume) -> None:
             raise ValueError(f"{node.GetName()}: the {role} volume holds no scalar image data")
     if fixed.GetID() == moving.GetID():
         raise ValueError(f"{fixed.GetName()}: is both the fixed and the moving volume; choose two volumes")
-    if output_volume is not None and output_volume.GetID() in (fixed.GetID(), moving.GetID()):
+    inputs = [fixed.GetID(), moving.GetID()]
+    for role, mask in zip(("fixed", "moving"), masks, strict=True):
+        if mask is not None and mask.GetID() in inputs:
+            raise ValueError(f"{mask.GetName()}: the {role} mask is one of the volumes being registered; choose a "
+                             "label map")
+    if output_volume is not None and output_volume.GetID() in inputs + [m.GetID() for m in masks if m is not None]:
         raise ValueError(f"{output_volume.GetName()}: the output volume is an input; choose or create another "
                          "(inputs are never overwritten)")
     if output_transform is not None:

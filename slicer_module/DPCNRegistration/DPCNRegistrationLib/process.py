@@ -65,10 +65,14 @@ def python_executable() -> str:
 
 
 def command(fixed: str | os.PathLike, moving: str | os.PathLike, output: str | os.PathLike, options: Options, *,
+            fixed_mask: str | os.PathLike | None = None, moving_mask: str | os.PathLike | None = None,
             python: str | None = None) -> list[str]:
-    """The child's command line: register ``moving`` onto ``fixed`` into the folder ``output``."""
+    """The child's command line: register ``moving`` onto ``fixed`` (each restricted to its mask file, if any) into
+    the folder ``output``."""
+    masks = [argument for flag, path in (("--fixed-mask", fixed_mask), ("--moving-mask", moving_mask))
+             if path is not None for argument in (flag, os.fspath(path))]
     return [python or python_executable(), os.fspath(SCRIPT), "register", os.fspath(fixed), os.fspath(moving),
-            "-o", os.fspath(output), *options.arguments(), "--progress", "json"]
+            "-o", os.fspath(output), *options.arguments(), *masks, "--progress", "json"]
 
 
 def parse_line(line: str) -> Event:

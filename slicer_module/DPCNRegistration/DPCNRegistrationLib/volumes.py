@@ -81,6 +81,52 @@ def volume_to_image(node, *, world: np.ndarray | None = None) -> sitk.Image:
         raise ValueError(f"{_name(node)}: holds no image data")
     if data.GetNumberOfScalarComponents() != 1:
         raise ValueError(f"{_name(node)}: has {data.GetNumberOfScalarComponents()} components; pick a scalar volume")
+    spacing, direction, origin = _lps_geometry(node, world)
+    size = data.GetDimensions()
+    array = numpy_support.vtk_to_numpy(data.GetPointData().GetScalars()).reshape(size[::-1])
+    image = sitk.GetImageFromArray(array.copy())
+    image.SetSpacing(spacing)
+    image.SetDirection(direction)
+    image.SetOrigin(origin)
+    return image
+
+
+def mask_on_volume(mask, volume, image: sitk.Image) -> sitk.Image:
+    """A label map as a binary mask on a volume's voxels, for ``dpcn-med register --fixed-mask`` / ``--moving-mask``.
+
+    Both nodes are taken as shown (linear parent transforms applied): the mask covers the voxels of ``volume`` that
+    it overlays in the views, whatever grid it was drawn on (nearest neighbour).
+
+    Args:
+        mask: label map (or scalar) volume node; any non-zero voxel is inside.
+        volume: the volume node the mask restricts.
+        image: ``volume`` as it is sent to dpcn-med (:func:`volume_to_image`); the mask gets its geometry.
+
+    Returns:
+        sitkUInt8 image, 1 inside and 0 outside, on ``image``'s grid.
+
+    Raises:
+        ValueError: the mask holds no image data or covers none of the volume's voxels.
+    """
+    shown = volume_to_image(mask, world=parent_to_world(mask))
+    grid = sitk.Image(image.GetSize(), sitk.sitkUInt8)
+    spacing, direction, origin = _lps_geometry(volume, parent_to_world(volume))
+    grid.SetSpacing(spacing)
+    grid.SetDirection(direction)
+    grid.SetOrigin(origin)
+    inside = sitk.Resample(sitk.Cast(shown != 0, sitk.sitkUInt8), grid, sitk.Transform(), sitk.sitkNearestNeighbor, 0)
+    if not sitk.GetArrayViewFromImage(inside).any():
+        raise ValueError(f"{_name(mask)}: the mask covers no voxel of {_name(volume)}; choose the mask drawn on it")
+    inside.CopyInformation(image)
+    return inside
+
+
+def _lps_geometry(node, world: np.ndarray | None) -> tuple[list[float], list[float], list[float]]:
+    """``(spacing, direction, origin)`` of a volume node in LPS, SimpleITK's order, with ``world`` applied.
+
+    Raises:
+        ValueError: a zero spacing, or a geometry that is not a rotation times spacing.
+    """
     lps = RAS_FROM_LPS @ ijk_to_ras(node, world=world)
     columns = lps[:3, :3]
     spacing = np.linalg.norm(columns, axis=0)
@@ -90,13 +136,7 @@ def volume_to_image(node, *, world: np.ndarray | None = None) -> sitk.Image:
     if not np.allclose(direction.T @ direction, np.eye(3), atol=ORTHONORMAL_TOLERANCE):
         raise ValueError(f"{_name(node)}: its geometry (with its parent transforms) is sheared or scaled unevenly; "
                          "harden or remove the transform before registering")
-    size = data.GetDimensions()
-    array = numpy_support.vtk_to_numpy(data.GetPointData().GetScalars()).reshape(size[::-1])
-    image = sitk.GetImageFromArray(array.copy())
-    image.SetSpacing(spacing.tolist())
-    image.SetDirection(direction.ravel().tolist())
-    image.SetOrigin(lps[:3, 3].tolist())
-    return image
+    return spacing.tolist(), direction.ravel().tolist(), lps[:3, 3].tolist()
 
 
 def image_to_volume(image: sitk.Image, node) -> None:
