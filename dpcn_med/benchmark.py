@@ -252,8 +252,15 @@ def status_mib(field: str) -> float:
     raise OSError(f"/proc/self/status has no {field} line")
 
 
-def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | None = None) -> list[dict]:
-    """Every method on every pair: one row per (case, bin, trial, method) with TRE (mm), seconds and peak MiB."""
+def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | None = None,
+                  showcase: dict | None = None) -> list[dict]:
+    """Every method on every pair: one row per (case, bin, trial, method) with TRE (mm), seconds and peak MiB.
+
+    ``showcase``, when given, receives one dpcn registration to render (:func:`write_outputs`): the first
+    heterogeneous case's (else the first case's) first pose in the largest-rotation bin, as ``case``, ``bin``,
+    ``fixed``, ``moving`` and ``estimate``.
+    """
+    shown = next((case for case in config.cases if not CASES[case][1]), config.cases[0])
     installed = available_methods()
     methods = tuple(m for m in config.methods if m in installed or m not in METHODS) or installed
     for kind, names, known in (("case", config.cases, CASES), ("method", methods, METHODS)):
@@ -278,6 +285,10 @@ def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | Non
                         seconds = time.perf_counter() - started
                         peak = status_mib("VmHWM") - before if before is not None else float("nan")
                         error = target_registration_error(estimate, truth, corners)
+                        if showcase is not None and (case, method, trial) == (shown, "dpcn", 0) and (
+                                (low, high) == config.bins[-1]):
+                            showcase.update(case=case, bin=f"{low}-{high}", fixed=fixed, moving=moving,
+                                            estimate=estimate)
                         rows.append({"case": case, "bin": f"{low}-{high}", "trial": trial, "method": method,
                                      "tre_mm": error, "seconds": seconds, "peak_mib": peak})
                         if progress is not None:
@@ -349,8 +360,11 @@ def figure(summary: list[dict], config: BenchmarkConfig, path: Path) -> None:
     plt.close(figure_)
 
 
-def write_outputs(rows: list[dict], config: BenchmarkConfig, output: str | os.PathLike, *, command: str) -> str:
-    """``results.csv`` (every registration), ``summary.md`` and ``success.png`` in ``output``; returns the text."""
+def write_outputs(rows: list[dict], config: BenchmarkConfig, output: str | os.PathLike, *, command: str,
+                  showcase: dict | None = None) -> str:
+    """``results.csv`` (every registration), ``summary.md`` and ``success.png`` in ``output``, and ``render.png``
+    (:func:`dpcn_med.render.before_after`) of the ``showcase`` from :func:`run_benchmark` where pyvista is
+    installed; returns the summary's text."""
     import csv
     import io as text_io
 
@@ -370,6 +384,22 @@ def write_outputs(rows: list[dict], config: BenchmarkConfig, output: str | os.Pa
             f"{SUCCESS_MM:g} mm over the fixed foreground's box; times on one CPU process, peak memory the "
             f"resident-set growth during the call.\n\n![success against initial rotation](success.png)\n\n"
             + markdown(summary, config))
+    if showcase:
+        text += _render(showcase, output / "render.png")
     io.write_text(text, output / "summary.md")
     figure(summary, config, output / "success.png")
     return text
+
+
+def _render(showcase: dict, path: Path) -> str:
+    """The showcase rendered to ``path``; the summary's paragraph about it."""
+    from dpcn_med import render
+
+    what = (f"{CASES[showcase['case']][0]}, a start in the {showcase['bin']} degree bin, registered by dpcn_med with "
+            "the command line's defaults")
+    try:
+        render.before_after(showcase["fixed"], showcase["moving"], showcase["estimate"], path, title=what)
+    except InputError as error:  # pyvista is the optional mesh extra
+        return f"\n3-D render skipped: {error}\n"
+    return (f"\n## Before and after in 3-D\n\n{what}: the fixed volume's foreground in grey, the moving volume's "
+            "brightest tissue (bone on a CT) in orange.\n\n![before and after](render.png)\n")

@@ -327,8 +327,9 @@ def _benchmark(args: argparse.Namespace) -> int:
     changes = {"cases": tuple(args.cases) if args.cases else None, "trials": args.trials,
                "methods": tuple(args.methods) if args.methods else None, "seed": args.seed}
     config = replace(config, **{k: v for k, v in changes.items() if v is not None})
-    rows = benchmark.run_benchmark(config, progress=lambda line: print(line, file=sys.stderr))
-    print(benchmark.write_outputs(rows, config, args.output, command=args.command_line))
+    showcase: dict = {}
+    rows = benchmark.run_benchmark(config, progress=lambda line: print(line, file=sys.stderr), showcase=showcase)
+    print(benchmark.write_outputs(rows, config, args.output, command=args.command_line, showcase=showcase))
     return EXIT_OK
 
 

@@ -61,6 +61,16 @@ class TestRunBenchmark:
             assert len(list(csv.DictReader(handle))) == 4
         assert "| dpcn_med learning-free, global estimate only | 100% | 100% |" in text
 
+    def test_the_showcase_is_rendered_before_and_after(self, tmp_path):
+        pytest.importorskip("pyvista", reason="pyvista (the mesh extra) is not installed")
+        config = BenchmarkConfig(cases=("mni",), methods=("dpcn",), bins=((150, 180),), trials=1)
+        showcase: dict = {}
+        rows = run_benchmark(config, showcase=showcase)
+        assert showcase["case"] == "mni" and showcase["bin"] == "150-180" and rows[0]["tre_mm"] < 2.0
+        text = write_outputs(rows, config, tmp_path, command="test", showcase=showcase)
+        assert (tmp_path / "render.png").stat().st_size > 10_000
+        assert "![before and after](render.png)" in text
+
     def test_unknown_names_are_refused(self):
         with pytest.raises(InputError, match="unknown case brain; use one of mni"):
             run_benchmark(BenchmarkConfig(cases=("brain",), methods=("dpcn",)))
