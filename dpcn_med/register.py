@@ -282,8 +282,8 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         alternatives = solution.alternatives
     else:
         with torch.no_grad():
-            solution = network(fixed_tensor, moving_tensor, mode=mode)
-        alternatives = None
+            solution = network(fixed_tensor, moving_tensor, mode=mode, alternatives=runner_ups)
+        alternatives = solution.stage.alternatives
     timings["solve"] = time.perf_counter() - start
     candidates = [(physical_transform(solution.rotation[0], float(solution.scale[0]) if mode == "similarity" else None,
                                       solution.translation[0], fixed_grid, moving_grid),

@@ -151,6 +151,7 @@ class TestLearnedModel:
         learned = register(fixed, moving, model=tmp_path / "untrained.safetensors", bandwidth=16)
         assert learned.model == str(tmp_path / "untrained.safetensors") and learned.to_dict()["model"] == learned.model
         assert target_registration_error(learned.fixed_to_moving, truth, foreground_corners(fixed)) < 1.0
+        assert len(learned.candidate_metrics) > 1  # the model's runner-ups reach the refinement too
         plain = register(fixed, moving, bandwidth=16, refine=False)
         np.testing.assert_allclose(homogeneous_matrix(register(fixed, moving, model=tmp_path / "untrained",
                                                                bandwidth=16, refine=False).dpc_transform),

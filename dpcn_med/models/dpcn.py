@@ -124,7 +124,8 @@ class DPCN(nn.Module):
         self.solver = SolverConfig(bandwidth=config.bandwidth)
 
     def forward(self, fixed: Tensor, moving: Tensor, target: PoseTarget | None = None,
-                generator: torch.Generator | None = None, mode: str | None = None) -> DPCNOutput:
+                generator: torch.Generator | None = None, mode: str | None = None,
+                alternatives: int = 0) -> DPCNOutput:
         """Register ``moving`` onto ``fixed``.
 
         Args:
@@ -132,6 +133,8 @@ class DPCN(nn.Module):
             target: the true pose; in training mode it (plus noise) compensates the translation stage's input.
             generator: for the compensation noise (reproducible training).
             mode: ``rigid`` or ``similarity``; defaults to the mode the model was trained in.
+            alternatives: runner-up candidates for ``stage.alternatives`` (the solver's option; their translations
+                come from the rotation-stage features).
 
         Returns:
             A :class:`DPCNOutput`. In training mode every estimate is a soft arg-max (differentiable); in eval mode
@@ -145,7 +148,7 @@ class DPCN(nn.Module):
         refine = not self.training
         mode = check_mode(mode or self.config.mode)
         stage = solve(self.rotation_fixed(fixed), self.rotation_moving(moving), mode, config=self.solver,
-                      temperatures=temperatures, refine=refine)
+                      temperatures=temperatures, refine=refine, alternatives=alternatives)
         if self.training and target is not None:
             compensation = self._noisy(target, generator, rigid=mode == "rigid").to(fixed.dtype)
         else:
