@@ -260,13 +260,13 @@ def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | Non
     heterogeneous case's (else the first case's) first pose in the largest-rotation bin, as ``case``, ``bin``,
     ``fixed``, ``moving`` and ``estimate``.
     """
-    shown = next((case for case in config.cases if not CASES[case][1]), config.cases[0])
     installed = available_methods()
     methods = tuple(m for m in config.methods if m in installed or m not in METHODS) or installed
     for kind, names, known in (("case", config.cases, CASES), ("method", methods, METHODS)):
         unknown = [name for name in names if name not in known]
         if unknown:
             raise InputError(f"unknown {kind} {', '.join(unknown)}; use one of {', '.join(known)}")
+    shown = next((case for case in config.cases if not CASES[case][1]), config.cases[0])
     rows = []
     folder = Path(tempfile.mkdtemp(prefix="dpcn-med-benchmark-"))
     try:
