@@ -353,20 +353,33 @@ class TestDependencies:
         assert not names & {"simpleitk", "torch", "vtk", "pyvista", "pytest", "slicer-core", "itk"}
 
 
+def moved_head(tmp_path: Path, *, seed: int, max_shift_mm: float):
+    """The seg3d head MR (fixed) and a copy moved by a known rigid transform (moving), both loaded by Slicer's storage
+    node into a new scene: ``(image, foreground corners (8, 3) LPS, truth fixed_to_moving, scene, fixed, moving)``."""
+    fixed_path = shared_path("seg3d/MR.nii.gz")
+    image = sitk.ReadImage(str(fixed_path))
+    corners = foreground_corners(image)
+    truth = random_similarity(np.random.default_rng(seed), corners.mean(axis=0), max_shift_mm=max_shift_mm)
+    io.write_image(moved_copy(image, truth), tmp_path / "moving.nii.gz")
+    scene = slicer.vtkMRMLScene()
+    return (image, corners, truth, scene, load_volume(scene, fixed_path, "MR"),
+            load_volume(scene, tmp_path / "moving.nii.gz", "MR moved"))
+
+
+def landing_errors(moving, truth, points: np.ndarray) -> np.ndarray:
+    """``(K,)`` mm: fixed anatomy ``x`` (LPS) sits at ``truth(x)`` in the moved file; under the moving volume's
+    transforms it must come back to ``x``."""
+    moved_points = np.array([truth.TransformPoint(p.tolist()) for p in points])
+    world = parent_to_world(moving) @ RAS_FROM_LPS @ homogeneous(moved_points)
+    return np.linalg.norm((RAS_FROM_LPS @ world).T[:, :3] - points, axis=1)
+
+
 @pytest.mark.shared_data
 class TestRegistration:
     def test_moving_volume_under_a_users_transform_lands_on_the_fixed_one(self, tmp_path):
         """A real head MRI moved by a known rigid transform and put under a user's transform: the result node, under
         that transform, maps the moving volume's anatomy onto the fixed one (checked at the head's corners)."""
-        fixed_path = shared_path("seg3d/MR.nii.gz")
-        image = sitk.ReadImage(str(fixed_path))
-        corners = foreground_corners(image)
-        truth = random_similarity(np.random.default_rng(11), corners.mean(axis=0), max_shift_mm=40)
-        io.write_image(moved_copy(image, truth), tmp_path / "moving.nii.gz")
-
-        scene = slicer.vtkMRMLScene()
-        fixed = load_volume(scene, fixed_path, "MR")
-        moving = load_volume(scene, tmp_path / "moving.nii.gz", "MR moved")
+        image, corners, truth, scene, fixed, moving = moved_head(tmp_path, seed=11, max_shift_mm=40)
         user = rotation_ras(25, (0, 0, 1), (12, 0, -6))
         base = linear_transform(scene, user, "user's transform")
         moving.SetAndObserveTransformNodeID(base.GetID())
@@ -381,10 +394,7 @@ class TestRegistration:
         assert moving.GetParentTransformNode().GetID() == result.transform.GetID()
         assert result.transform.GetParentTransformNode().GetID() == base.GetID()
         np.testing.assert_allclose(transform_to_world(base), user, atol=1e-12)  # the user's transform is untouched
-        # Fixed anatomy x (LPS) sits at T(x) in the moved file; under user and result it must come back to x.
-        moved_points = np.array([truth.TransformPoint(p.tolist()) for p in corners])
-        world = parent_to_world(moving) @ RAS_FROM_LPS @ homogeneous(moved_points)
-        error = np.linalg.norm((RAS_FROM_LPS @ world).T[:, :3] - corners, axis=1)
+        error = landing_errors(moving, truth, corners)
         assert error.max() < 1.5, f"corner errors {np.round(error, 2)} mm"
         # The resampled output lies on the fixed grid and shows the same head.
         resampled, reference = volume_to_image(output_volume), volume_to_image(fixed)
@@ -396,14 +406,7 @@ class TestRegistration:
 
     def test_a_fixed_mask_reaches_dpcn_med_and_the_slab_registers(self, tmp_path):
         """Only the upper 60% of the fixed head (a label map drawn on it) against the whole moved head."""
-        fixed_path = shared_path("seg3d/MR.nii.gz")
-        image = sitk.ReadImage(str(fixed_path))
-        corners = foreground_corners(image)
-        truth = random_similarity(np.random.default_rng(12), corners.mean(axis=0), max_shift_mm=30)
-        io.write_image(moved_copy(image, truth), tmp_path / "moving.nii.gz")
-        scene = slicer.vtkMRMLScene()
-        fixed = load_volume(scene, fixed_path, "MR")
-        moving = load_volume(scene, tmp_path / "moving.nii.gz", "MR moved")
+        image, corners, truth, scene, fixed, moving = moved_head(tmp_path, seed=12, max_shift_mm=30)
         labels = np.zeros(sitk.GetArrayViewFromImage(image).shape, np.uint8)
         labels[int(0.4 * labels.shape[0]):] = 1  # slices along the image's third axis
         label_image = sitk.GetImageFromArray(labels)
@@ -415,9 +418,7 @@ class TestRegistration:
         assert result.report["inputs"]["moving_mask"] is None
         kept = np.array([p for p in corners if image.TransformPhysicalPointToContinuousIndex(p.tolist())[2]
                          >= 0.4 * labels.shape[0]])
-        moved_points = np.array([truth.TransformPoint(p.tolist()) for p in kept])
-        world = parent_to_world(moving) @ RAS_FROM_LPS @ homogeneous(moved_points)
-        error = np.linalg.norm((RAS_FROM_LPS @ world).T[:, :3] - kept, axis=1)
+        error = landing_errors(moving, truth, kept)
         assert error.max() < 2.0, f"corner errors {np.round(error, 2)} mm"
 
     def test_transform_node_equals_the_cli_transform_file_read_by_slicer(self, tmp_path):
