@@ -163,19 +163,21 @@ def _rank_candidates(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score
             torch.cat([ranked.values, rest.values[:, :others]], 1))
 
 
-def _alternatives(fixed: Tensor, moving: Tensor, rotation: Tensor, scale: Tensor, score: Tensor,
-                  temperature: Tensor | float, config: SolverConfig) -> Alternatives:
-    """Translations for the runner-ups ``rotation (batch, A, 3, 3)``, ``scale (batch, A)``: the same full-resolution
-    translation stage as the chosen candidate's, one batch of ``batch * A`` volumes."""
-    batch, count = scale.shape
-    linear = scale[..., None, None] * rotation
-    compensated = warp(moving, linear)[:, 0].flatten(0, 1)  # (batch * A, N, N, N)
+def _translation_stage(fixed: Tensor, moving: Tensor, linear: Tensor, temperature: Tensor | float,
+                       config: SolverConfig, refine: bool) -> tuple[Tensor, TranslationEstimate]:
+    """Translation for each scaled rotation ``linear (batch, K, 3, 3)``: ``moving (batch, 1, N, N, N)`` compensated by
+    it and phase-correlated with ``fixed (batch, N, N, N)``, as one batch of ``batch * K`` pairs.
+
+    Returns:
+        ``translation (batch, K, 3)`` voxels ``(x, y, z)`` and the estimate over the ``batch * K`` pairs (its shift is
+        before ``linear``).
+    """
+    batch, count = linear.shape[:2]
+    compensated = warp(moving, linear)[:, 0].flatten(0, 1)  # (batch * K, N, N, N)
     repeated = fixed[:, None].expand(-1, count, *fixed.shape[1:]).flatten(0, 1)
-    estimate = phase_translation(repeated, compensated, temperature, dim=3, taper=config.taper, refine=True,
+    estimate = phase_translation(repeated, compensated, temperature, dim=3, taper=config.taper, refine=refine,
                                  upsample=config.upsample)
-    translation = (linear @ estimate.shift.view(batch, count, 3, 1))[..., 0]
-    return Alternatives(rotation=rotation, scale=scale, translation=translation,
-                        confidence=estimate.peak.mass.view(batch, count), score=score)
+    return (linear @ estimate.shift.view(batch, count, 3, 1))[..., 0], estimate
 
 
 def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: SolverConfig | None = None,
@@ -208,7 +210,7 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         the highest translation peak wins, its rotation is refined
         continuously on the sphere, and scale and translation are measured again at full resolution. With
         ``refine=False`` every estimate is a soft arg-max, differentiable with respect to both inputs and the
-        temperatures. With ``alternatives=A`` the ``A`` runner-up finalists come back as well, each with its own
+        temperatures. With ``alternatives=A`` up to ``A`` runner-up candidates come back as well, each with its own
         full-resolution translation (:class:`Alternatives`).
 
     References:
@@ -263,10 +265,12 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
     if config.alternatives > 0:
         with clock("alternatives"), torch.no_grad():
             others = ranked[:, 1:1 + config.alternatives]
-            alternatives = _alternatives(fixed_volume, moving, candidates[rows[:, None], others],
-                                         candidate_scale[rows[:, None], others],
-                                         ranked_score[:, 1:1 + config.alternatives], temperatures.translation,
-                                         config)
+            rotations, scales = candidates[rows[:, None], others], candidate_scale[rows[:, None], others]
+            translations, estimate = _translation_stage(fixed_volume, moving, scales[..., None, None] * rotations,
+                                                        temperatures.translation, config, refine=True)
+            alternatives = Alternatives(rotation=rotations, scale=scales, translation=translations,
+                                        confidence=estimate.peak.mass.view(scales.shape),
+                                        score=ranked_score[:, 1:1 + config.alternatives])
     if config.refine:  # inference only: a local search has no useful gradient, so build no graph for it
         with clock("rotation refinement"), torch.no_grad():
             fine_sphere = isht(fixed_coeffs, degrees, bandwidth * config.refine_oversample)  # band-limited, finely
@@ -279,11 +283,10 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         scale = scale_estimate.scale[:, 0] if scale_estimate is not None else torch.ones(
             batch, device=fixed.device, dtype=fixed.dtype)
     with clock("translation"):
-        linear = scale[:, None, None] * rotation
-        compensated = warp(moving, linear)[:, 0]
-        translation_estimate = phase_translation(fixed_volume, compensated, temperatures.translation, dim=3,
-                                                 taper=config.taper, refine=config.refine, upsample=config.upsample)
-        translation = (linear @ translation_estimate.shift[..., None])[..., 0]
+        translation, translation_estimate = _translation_stage(fixed_volume, moving,
+                                                               (scale[:, None, None] * rotation)[:, None],
+                                                               temperatures.translation, config, config.refine)
+        translation = translation[:, 0]
     rotation_log_prob = so3_log_prob(correlation, temperatures.rotation)
     return SolveResult(rotation=rotation, scale=scale, translation=translation,
                        confidence=translation_estimate.peak.mass, rotation_log_prob=rotation_log_prob,
