@@ -8,6 +8,9 @@ target registration error under 2 mm after refinement, over the corners of the s
 table and writes it under docs/.
 
     python benchmarks/partial_fov.py --trials 20 [--cases pseudo-ct t1-flair mr-mr] [--overlaps 1 0.8 0.6 0.4]
+
+Variants of the defaults, for a side-by-side row: ``--bandwidth``, ``--sphere-band LOW HIGH``
+(:attr:`dpcn_med.solver.SolverConfig.sphere_band`), ``--fill`` (:attr:`dpcn_med.preprocess.Preprocessing.fill`).
 """
 
 from __future__ import annotations
@@ -22,8 +25,9 @@ import numpy as np
 import SimpleITK as sitk
 
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
-from dpcn_med.preprocess import foreground_box, foreground_mask
+from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
 from dpcn_med.register import register
+from dpcn_med.solver import SolverConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
@@ -68,7 +72,8 @@ def slab(image: sitk.Image, fraction: float, rng: np.random.Generator) -> sitk.I
     return sitk.RegionOfInterest(image, size, index)
 
 
-def run(case: str, overlaps: list[float], trials: int, seed: int) -> list[dict]:
+def run(case: str, overlaps: list[float], trials: int, seed: int, **settings) -> list[dict]:
+    """The rows of one case; ``settings`` go to :func:`dpcn_med.register.register`."""
     fixed_whole, moving_whole = case_images(case)
     rows = []
     for overlap in overlaps:
@@ -79,7 +84,7 @@ def run(case: str, overlaps: list[float], trials: int, seed: int) -> list[dict]:
             truth = random_similarity(rng, foreground_box(fixed)[0], max_shift_mm=40.0)
             moving = moved_copy(moving_whole, truth)
             started = time.perf_counter()
-            result = register(fixed, moving)
+            result = register(fixed, moving, **settings)
             seconds.append(time.perf_counter() - started)
             errors.append(target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)))
         rows.append({"case": case, "overlap": overlap, "trials": trials,
@@ -96,10 +101,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--overlaps", nargs="+", type=float, default=[1.0, 0.8, 0.6, 0.4])
     parser.add_argument("--trials", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--bandwidth", type=int, default=32, help="solver bandwidth B (the CLI's default: 32)")
+    parser.add_argument("--sphere-band", type=float, nargs=2, metavar=("LOW", "HIGH"),
+                        default=SolverConfig.sphere_band, help="the solver's sphere band, fractions of Nyquist")
+    parser.add_argument("--fill", type=float, default=Preprocessing.fill, help="canonical-grid fill")
     parser.add_argument("--label", default="learning-free (CLI defaults)", help="the row label, e.g. the variant")
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "partial_fov.md")
     args = parser.parse_args(argv)
-    rows = [row for case in args.cases for row in run(case, args.overlaps, args.trials, args.seed)]
+    settings = {"bandwidth": args.bandwidth, "solver": SolverConfig(sphere_band=tuple(args.sphere_band)),
+                "preprocessing": Preprocessing(fill=args.fill)}
+    rows = [row for case in args.cases for row in run(case, args.overlaps, args.trials, args.seed, **settings)]
     lines = ["| case | method | overlap | trials | success (TRE < 2 mm) | median TRE (mm) | median seconds |",
              "|---|---|---|---|---|---|---|"]
     lines += [f"| {CASES[r['case']]} | {args.label} | {r['overlap']:.0%} | {r['trials']} | {r['success']:.0%} | "

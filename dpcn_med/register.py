@@ -29,7 +29,7 @@ from dpcn_med.geometry import (
     similarity_transform,
 )
 from dpcn_med.preprocess import MODALITIES, Preprocessing, pair_grids, prepare, resample_to_grid, to_tensor
-from dpcn_med.solver import solve
+from dpcn_med.solver import SolverConfig, solve
 from dpcn_med.solver.validation import MAX_BANDWIDTH, check_bandwidth, check_mode
 
 ImageLike = str | os.PathLike | sitk.Image
@@ -215,7 +215,7 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
              fixed_mask: ImageLike | None = None, moving_mask: ImageLike | None = None,
              fixed_modality: str = "auto", moving_modality: str = "auto", resample: bool = False,
              preprocessing: Preprocessing | None = None, refinement: Refinement | None = None,
-             progress: Progress | None = None) -> RegistrationResult:
+             solver: SolverConfig | None = None, progress: Progress | None = None) -> RegistrationResult:
     """Register ``moving`` onto ``fixed`` from any starting pose.
 
     Args:
@@ -235,6 +235,8 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         resample: also return the moving image resampled on the fixed grid.
         preprocessing: canonical-grid and intensity settings (default :class:`Preprocessing`).
         refinement: refinement settings (default :class:`Refinement`).
+        solver: settings of the learning-free solver (default :class:`dpcn_med.solver.SolverConfig`; its bandwidth
+            and alternatives are set from ``bandwidth`` and ``refinement``); a learned model carries its own.
         progress: called with ``(stage, fraction done)`` as the work advances.
 
     Returns:
@@ -254,6 +256,8 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
             raise InputError(f"{name} {value!r} is not supported; use one of {', '.join(MODALITIES)}")
     torch_device = resolve_device(device)
     network = load_feature_model(model, bandwidth, torch_device)
+    if network is not None and solver is not None:
+        raise InputError(f"{model}: a learned model carries its own solver settings; pass solver= only without one")
     timings: dict[str, float] = {}
 
     start = time.perf_counter()
@@ -276,7 +280,7 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
     report("solving", 0.3)
     runner_ups = refinement.starts - 1 if refine else 0  # only a local search can tell them apart (see Refinement)
     if network is None:
-        solution = solve(fixed_tensor, moving_tensor, mode, bandwidth=bandwidth, profile=True,
+        solution = solve(fixed_tensor, moving_tensor, mode, config=solver, bandwidth=bandwidth, profile=True,
                          alternatives=runner_ups)
         timings.update({f"solver.{stage}": seconds for stage, seconds in solution.timings.items()})
         alternatives = solution.alternatives

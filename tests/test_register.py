@@ -25,6 +25,7 @@ from dpcn_med.register import (
     resolve_device,
 )
 from dpcn_med.samples import mni152_t1
+from dpcn_med.solver import SolverConfig
 from tests.conftest import shared_path
 
 
@@ -157,6 +158,23 @@ class TestLearnedModel:
                                                                bandwidth=16, refine=False).dpc_transform),
                                    homogeneous_matrix(plain.dpc_transform), atol=1e-3)
         assert plain.model == "learning-free"
+
+
+class TestSolverSettings:
+    def test_they_reach_the_solver(self):
+        """One rotation peak without its half-turn twins leaves a single candidate for the refinement, where the
+        defaults offer several."""
+        fixed = mni_2mm()
+        truth = random_similarity(np.random.default_rng(4), foreground_box(fixed)[0])
+        moving = moved_copy(fixed, truth)
+        single = register(fixed, moving, solver=SolverConfig(peaks=1, half_turns=False))
+        assert len(single.candidate_metrics) == 1
+        assert len(register(fixed, moving).candidate_metrics) > 1
+
+    def test_refused_with_a_learned_model(self, tmp_path):
+        save_model(DPCN(ModelConfig(bandwidth=16, channels=(4, 8, 16), residual_units=0)), tmp_path / "untrained")
+        with pytest.raises(InputError, match="its own solver settings"):
+            register(mni_2mm(), mni_2mm(), model=tmp_path / "untrained", bandwidth=16, solver=SolverConfig())
 
 
 class TestFieldOfViewOverlap:

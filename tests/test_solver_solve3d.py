@@ -117,6 +117,11 @@ class TestAlternatives:
         fixed = volume_grid("mni", 32)
         assert solve(fixed, random_poses(1, 32, seed=20)[0].moving_from(fixed)).alternatives is None
 
+    def test_a_single_candidate_has_no_runner_up(self):
+        fixed = volume_grid("mni", 32)
+        moving = random_poses(1, 32, seed=20)[0].moving_from(fixed)
+        assert solve(fixed, moving, peaks=1, half_turns=False, alternatives=3).alternatives is None
+
     def test_runner_ups_are_other_rotations_and_include_the_mirror_twin(self):
         size = 64
         fixed = volume_grid("mni", size)

@@ -68,7 +68,8 @@ class SolveResult:
         translation_estimate: the translation stage of the chosen candidate (shift before ``scale * rotation``).
         candidates: ``(batch,)`` number of rotation candidates left after dropping near-duplicates.
         timings: seconds per stage when ``profile=True`` (empty otherwise).
-        alternatives: the runner-up candidates when ``alternatives > 0`` in the config, else ``None``.
+        alternatives: the runner-up candidates when ``alternatives > 0`` in the config, else (or with a single
+            candidate) ``None``.
     """
 
     rotation: Tensor
@@ -262,7 +263,7 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
     rows = torch.arange(batch, device=fixed.device)
     rotation = candidates[rows, ranked[:, 0]]
     alternatives = None
-    if config.alternatives > 0:
+    if config.alternatives > 0 and count > 1:  # one candidate (one peak, no half-turns) has no runner-up
         with clock("alternatives"), torch.no_grad():
             others = ranked[:, 1:1 + config.alternatives]
             rotations, scales = candidates[rows[:, None], others], candidate_scale[rows[:, None], others]
