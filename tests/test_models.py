@@ -64,7 +64,9 @@ class TestDPCN:
         model = DPCN(TINY).eval()
         with torch.no_grad():
             output = model(fixed, moving)
-        reference = solve(fixed, moving, "similarity", bandwidth=8)
+            # Its temperatures, stored as softplus parameters, equal the defaults to float rounding, which a soft
+            # arg-max over a flat correlation peak can show; compare at the model's own.
+            reference = solve(fixed, moving, "similarity", bandwidth=8, temperatures=model.temperatures())
         torch.testing.assert_close(output.rotation, reference.rotation)
         torch.testing.assert_close(output.scale, reference.scale)
         torch.testing.assert_close(output.translation, reference.translation, atol=1e-4, rtol=0)

@@ -9,7 +9,8 @@ from dpcn_med.errors import InputError
 from dpcn_med.geometry import half_turns, rotation_angle
 from dpcn_med.solver import SolverConfig, StageTemperatures, solve
 from dpcn_med.solver.so3 import sphere_correlation
-from dpcn_med.solver.solve3d import _candidate_scores, _spheres
+from dpcn_med.solver.solve3d import _candidate_scores, _sphere
+from dpcn_med.solver.spectrum import magnitude_spectrum
 from dpcn_med.solver.sphere import quadrature_weights, sphere_directions
 from dpcn_med.synth import random_poses
 from tests.conftest import volume_grid
@@ -105,7 +106,8 @@ class TestRecoveryOnRealAnatomy:
         twin = pose.rotation @ half_turns(torch.device("cpu"), torch.float64)[1]
         rotations = torch.stack([pose.rotation, twin]).float()[None]
         directions, weights = sphere_directions(32, dtype=torch.float32), quadrature_weights(32, dtype=torch.float32)
-        _, _, fixed_sphere, moving_sphere = _spheres(fixed, moving, SolverConfig(), directions, weights)
+        fixed_sphere, moving_sphere = (_sphere(magnitude_spectrum(volume, 3, 0.25), SolverConfig().sphere_band,
+                                               SolverConfig(), directions, weights) for volume in (fixed, moving))
         sphere = sphere_correlation(moving_sphere, fixed_sphere, weights, directions, rotations)[0]
         assert abs(sphere[0] - sphere[1]).item() < 0.01 * sphere[0].item()
         peaks = _candidate_scores(fixed, moving, pose.scale * rotations, size, 0.25)[0]
@@ -120,7 +122,8 @@ class TestAlternatives:
     def test_a_single_candidate_has_no_runner_up(self):
         fixed = volume_grid("mni", 32)
         moving = random_poses(1, 32, seed=20)[0].moving_from(fixed)
-        assert solve(fixed, moving, peaks=1, half_turns=False, alternatives=3).alternatives is None
+        single = solve(fixed, moving, peaks=1, half_turns=False, extra_sphere_bands=(), alternatives=3)
+        assert single.alternatives is None
 
     def test_runner_ups_are_other_rotations_and_include_the_mirror_twin(self):
         size = 64

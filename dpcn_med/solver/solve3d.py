@@ -84,22 +84,15 @@ class SolveResult:
     alternatives: Alternatives | None = None
 
 
-def _spheres(fixed: Tensor, moving: Tensor, config: SolverConfig, directions: Tensor, weights: Tensor
-             ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Magnitude spectra ``(batch, N, N, N)`` and normalised spheres ``(batch, 2B, 2B)`` of both volumes.
+def _sphere(magnitude: Tensor, band: tuple[float, float], config: SolverConfig, directions: Tensor, weights: Tensor
+            ) -> Tensor:
+    """Normalised sphere ``(batch, 2B, 2B)`` of a magnitude spectrum ``(batch, N, N, N)``, aggregated over ``band``.
 
     ``directions (2B, 2B, 3)`` and ``weights (2B,)`` are the SOFT grid's unit vectors and quadrature weights.
     """
-    size = fixed.shape[-1]
-    fixed_magnitude = magnitude_spectrum(fixed, 3, config.taper)
-    moving_magnitude = magnitude_spectrum(moving, 3, config.taper)
-    radii = log_radii(size, config.sphere_band, config.sphere_radii, device=fixed.device, dtype=fixed.dtype)
-    batch_directions = directions.expand(fixed.shape[0], *directions.shape)
-    fixed_sphere = normalize_sphere(to_sphere(fixed_magnitude, batch_directions, radii,
-                                              log_magnitude=config.log_magnitude), weights)
-    moving_sphere = normalize_sphere(to_sphere(moving_magnitude, batch_directions, radii,
-                                               log_magnitude=config.log_magnitude), weights)
-    return fixed_magnitude, moving_magnitude, fixed_sphere, moving_sphere
+    radii = log_radii(magnitude.shape[-1], band, config.sphere_radii, device=magnitude.device, dtype=magnitude.dtype)
+    batch_directions = directions.expand(magnitude.shape[0], *directions.shape)
+    return normalize_sphere(to_sphere(magnitude, batch_directions, radii, log_magnitude=config.log_magnitude), weights)
 
 
 def _with_half_turns(rotation: Tensor) -> Tensor:
@@ -227,21 +220,30 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
     batch = fixed.shape[0]
 
     clock = StageClock(fixed.device, config.profile)
+    bands = (config.sphere_band, *config.extra_sphere_bands)
     with clock("spectrum and sphere"):
         directions = sphere_directions(bandwidth, device=fixed.device, dtype=fixed.dtype)
         weights = quadrature_weights(bandwidth, device=fixed.device, dtype=fixed.dtype)
-        fixed_magnitude, moving_magnitude, fixed_sphere, moving_sphere = _spheres(
-            fixed_volume, moving_volume, config, directions, weights)
+        fixed_magnitude = magnitude_spectrum(fixed_volume, 3, config.taper)
+        moving_magnitude = magnitude_spectrum(moving_volume, 3, config.taper)
+        # (fixed, moving) spheres per band, the primary band first
+        spheres = [(_sphere(fixed_magnitude, band, config, directions, weights),
+                    _sphere(moving_magnitude, band, config, directions, weights)) for band in bands]
         degrees = even_degrees(bandwidth)
-        fixed_coeffs = sht(fixed_sphere, degrees)
-        moving_coeffs = sht(moving_sphere, degrees)
+        fixed_coeffs = [sht(fixed_sphere, degrees) for fixed_sphere, _ in spheres]
+        moving_coeffs = [sht(moving_sphere, degrees) for _, moving_sphere in spheres]
     with clock("so3 correlation"):
-        correlation = so3_correlation(moving_coeffs, fixed_coeffs, bandwidth)
+        correlations = [so3_correlation(moving_band, fixed_band, bandwidth)
+                        for fixed_band, moving_band in zip(fixed_coeffs, moving_coeffs)]
     with clock("peaks"):
-        peaks = so3_peaks(correlation, config.peaks)
-        peak_rotation, _ = soft_argmax_so3(correlation, peaks, temperatures.rotation,
-                                           half_width=config.rotation_half_width)
-        candidates = _with_half_turns(peak_rotation) if config.half_turns else peak_rotation
+        per_band = []  # (batch, K_b, 3, 3) candidates of each band
+        for correlation in correlations:
+            peak_rotation, _ = soft_argmax_so3(correlation, so3_peaks(correlation, config.peaks), temperatures.rotation,
+                                               half_width=config.rotation_half_width)
+            per_band.append(_with_half_turns(peak_rotation) if config.half_turns else peak_rotation)
+        candidates = torch.cat(per_band, 1)
+        origin = torch.cat([torch.full((band.shape[1],), index, device=fixed.device)
+                            for index, band in enumerate(per_band)])  # (K,) the band each candidate came from
     count = candidates.shape[1]
 
     def scale_stage(rotation: Tensor) -> ScaleEstimate:
@@ -251,7 +253,11 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
                                max_scale=config.max_scale, refine=config.refine, upsample=config.upsample)
 
     with clock("candidates"), torch.no_grad():
-        sphere_score = sphere_correlation(moving_sphere, fixed_sphere, weights, directions, candidates)
+        # Each candidate's sphere correlation in its own band, less that band's best: correlations of different
+        # bands are not comparable, their shortfalls from the best are.
+        sphere_score = torch.cat([score - score.amax(-1, keepdim=True) for score in (
+            sphere_correlation(moving_sphere, fixed_sphere, weights, directions, band)
+            for (fixed_sphere, moving_sphere), band in zip(spheres, per_band))], 1)
         keep = deduplicate(candidates, sphere_score, math.radians(config.duplicate_degrees))
         if mode == "similarity":
             candidate_scale = scale_stage(candidates).scale
@@ -274,10 +280,14 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
                                         score=ranked_score[:, 1:1 + config.alternatives])
     if config.refine:  # inference only: a local search has no useful gradient, so build no graph for it
         with clock("rotation refinement"), torch.no_grad():
-            fine_sphere = isht(fixed_coeffs, degrees, bandwidth * config.refine_oversample)  # band-limited, finely
-            rotation, _ = refine_rotation(moving_sphere, fine_sphere, weights, directions, rotation[:, None],
-                                          step=math.pi / bandwidth, iterations=config.refine_iterations)
-            rotation = rotation[:, 0]
+            chosen_band = origin[ranked[:, 0]]  # (batch,): refined on the sphere of the band it came from
+            refined = rotation
+            for band in chosen_band.unique().tolist():
+                fine_sphere = isht(fixed_coeffs[band], degrees, bandwidth * config.refine_oversample)  # finely
+                candidate, _ = refine_rotation(spheres[band][1], fine_sphere, weights, directions, rotation[:, None],
+                                               step=math.pi / bandwidth, iterations=config.refine_iterations)
+                refined = torch.where((chosen_band == band)[:, None, None], candidate[:, 0], refined)
+            rotation = refined
 
     with clock("scale"):
         scale_estimate = scale_stage(rotation[:, None]) if mode == "similarity" else None
@@ -288,7 +298,7 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
                                                                (scale[:, None, None] * rotation)[:, None],
                                                                temperatures.translation, config, config.refine)
         translation = translation[:, 0]
-    rotation_log_prob = so3_log_prob(correlation, temperatures.rotation)
+    rotation_log_prob = so3_log_prob(correlations[0], temperatures.rotation)  # the primary band's
     return SolveResult(rotation=rotation, scale=scale, translation=translation,
                        confidence=translation_estimate.peak.mass, rotation_log_prob=rotation_log_prob,
                        scale_estimate=scale_estimate, translation_estimate=translation_estimate,
