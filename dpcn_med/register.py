@@ -233,7 +233,8 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         fixed_modality: ``"auto"``, ``"ct"``, ``"mr"`` or ``"us"`` (intensity normalisation).
         moving_modality: the same for the moving image.
         resample: also return the moving image resampled on the fixed grid.
-        preprocessing: canonical-grid and intensity settings (default :class:`Preprocessing`).
+        preprocessing: canonical-grid and intensity settings (default :class:`Preprocessing`, or the learned
+            model's own).
         refinement: refinement settings (default :class:`Refinement`).
         solver: settings of the learning-free solver (default :class:`dpcn_med.solver.SolverConfig`; its bandwidth
             and alternatives are set from ``bandwidth`` and ``refinement``); a learned model carries its own.
@@ -247,7 +248,6 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         InputError: unreadable or unusable inputs, masks or options; the message names the file and the problem.
     """
     report = progress or (lambda stage, fraction: None)
-    preprocessing = preprocessing or Preprocessing()
     refinement = refinement or Refinement()
     mode = check_mode(mode)
     check_bandwidth(bandwidth, 2 * MAX_BANDWIDTH)  # before any work: the grids will be (2B)^3
@@ -258,6 +258,8 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
     network = load_feature_model(model, bandwidth, torch_device)
     if network is not None and solver is not None:
         raise InputError(f"{model}: a learned model carries its own solver settings; pass solver= only without one")
+    # A learned model saw grids made one way in training; it gets the same unless the caller says otherwise.
+    preprocessing = preprocessing or (network.config.grid_preprocessing() if network is not None else Preprocessing())
     timings: dict[str, float] = {}
 
     start = time.perf_counter()

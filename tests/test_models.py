@@ -10,6 +10,7 @@ import torch
 from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.geometry import geodesic_distance
 from dpcn_med.models import DPCN, FeatureExtractor, ModelConfig, load_model, model_paths, pose_loss, save_model
+from dpcn_med.preprocess import Preprocessing
 from dpcn_med.solver import PoseTarget, solve
 from dpcn_med.synth import random_poses
 from tests.conftest import volume_grid
@@ -42,6 +43,15 @@ class TestModelConfig:
     def test_refuses_bad_values(self, options, message):
         with pytest.raises(InputError, match=message):
             ModelConfig(**options)
+
+    def test_records_the_grid_preprocessing(self):
+        assert ModelConfig().grid_preprocessing() == Preprocessing()
+        config = ModelConfig(preprocessing={"fill": 0.6})  # the rest at the defaults, and written down
+        assert config.grid_preprocessing() == Preprocessing(fill=0.6)
+        assert ModelConfig.from_json(json.loads(json.dumps(config.to_json()))) == config
+        assert ModelConfig.from_json({**TINY.to_json(), "preprocessing": {}}).grid_preprocessing() == Preprocessing()
+        with pytest.raises(InputError, match="preprocessing has unknown keys \\['spacing'\\]"):
+            ModelConfig(preprocessing={"spacing": 2.0})
 
     def test_unknown_keys_refused(self):
         with pytest.raises(InputError, match="unknown keys \\['learning_rate'\\]"):

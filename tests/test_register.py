@@ -14,7 +14,7 @@ from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.geometry import homogeneous_matrix
 from dpcn_med.models import DPCN, ModelConfig, save_model
-from dpcn_med.preprocess import foreground_box, foreground_mask
+from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
 from dpcn_med.register import (
     Refinement,
     RegistrationResult,
@@ -158,6 +158,19 @@ class TestLearnedModel:
                                                                bandwidth=16, refine=False).dpc_transform),
                                    homogeneous_matrix(plain.dpc_transform), atol=1e-3)
         assert plain.model == "learning-free"
+
+    def test_the_model_s_grid_preprocessing_is_used(self, tmp_path):
+        """A model trained on grids whose foreground spans 0.6 of the side gets such grids (finer spacing than the
+        defaults' 0.5), unless the caller passes other settings."""
+        config = ModelConfig(bandwidth=16, channels=(4, 8, 16), residual_units=0, preprocessing={"fill": 0.6})
+        save_model(DPCN(config), tmp_path / "fill")
+        fixed = mni_2mm()
+        plain = register(fixed, fixed, bandwidth=16, refine=False).fixed_grid.spacing
+        learned = register(fixed, fixed, model=tmp_path / "fill", bandwidth=16, refine=False).fixed_grid.spacing
+        assert learned == pytest.approx(plain * 0.5 / 0.6)
+        chosen = register(fixed, fixed, model=tmp_path / "fill", bandwidth=16, refine=False,
+                          preprocessing=Preprocessing()).fixed_grid.spacing
+        assert chosen == pytest.approx(plain)
 
 
 class TestSolverSettings:

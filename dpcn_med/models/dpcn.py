@@ -18,6 +18,7 @@ from dpcn_med import __version__
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import axis_angle_to_matrix, warp
 from dpcn_med.models.features import FeatureExtractor
+from dpcn_med.preprocess import Preprocessing
 from dpcn_med.solver import LossWeights, PoseTarget, SolverConfig, SolveResult, StageTemperatures, Temperatures, solve
 from dpcn_med.solver import pose_loss as solver_pose_loss
 from dpcn_med.solver.translation import TranslationEstimate, phase_translation
@@ -42,7 +43,8 @@ class ModelConfig:
             translation stage is the truth turned by an angle of this standard deviation about a random axis...
         compensation_noise_scale: ...and its scale the truth times ``exp(N(0, this))``.
         temperatures: initial softmax temperatures ``(rotation, scale, translation)`` (learned afterwards).
-        preprocessing: the :class:`dpcn_med.preprocess.Preprocessing` fields the training grids were made with.
+        preprocessing: the :class:`dpcn_med.preprocess.Preprocessing` fields the training grids are made with, and
+            so the ones :func:`dpcn_med.register.register` uses with this model (the defaults when it was created).
         version: dpcn_med version that made the model.
     """
 
@@ -56,7 +58,7 @@ class ModelConfig:
     compensation_noise_scale: float = 0.02
     temperatures: tuple[float, float, float] = (StageTemperatures.rotation, StageTemperatures.scale,
                                                 StageTemperatures.translation)
-    preprocessing: dict = field(default_factory=dict)
+    preprocessing: dict = field(default_factory=lambda: asdict(Preprocessing()))
     version: str = __version__
 
     def __post_init__(self) -> None:
@@ -66,6 +68,16 @@ class ModelConfig:
         if len(self.channels) < 2 or (2 * self.bandwidth) % 2 ** (len(self.channels) - 1):
             raise InputError(f"channels {self.channels!r}: need at least two levels, and the grid size "
                              f"{2 * self.bandwidth} must be divisible by 2^{len(self.channels) - 1}")
+        # Complete, so that the saved config says every setting; JSON lists become the dataclass's tuples again.
+        object.__setattr__(self, "preprocessing", asdict(self.grid_preprocessing()))
+
+    def grid_preprocessing(self) -> Preprocessing:
+        """:attr:`preprocessing` as a :class:`dpcn_med.preprocess.Preprocessing` (missing fields at their
+        defaults)."""
+        unknown = set(self.preprocessing) - {f.name for f in fields(Preprocessing)}
+        if unknown:
+            raise InputError(f"preprocessing has unknown keys {sorted(unknown)}")
+        return Preprocessing(**{k: tuple(v) if isinstance(v, list) else v for k, v in self.preprocessing.items()})
 
     def to_json(self) -> dict:
         """Plain JSON types (tuples become lists)."""

@@ -82,7 +82,8 @@ def _real_pairs(roots: tuple[str, ...], config: TrainConfig, *, crop: tuple[floa
     """The folders' real pairs as one dataset, or ``None`` without folders."""
     if not roots:
         return None
-    return torch.utils.data.ConcatDataset([FolderPairs(root, config.model.bandwidth, crop=crop, seed=seed)
+    return torch.utils.data.ConcatDataset([FolderPairs(root, config.model.bandwidth, crop=crop, seed=seed,
+                                                       preprocessing=config.model.grid_preprocessing())
                                            for root in roots])
 
 
@@ -186,7 +187,8 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
         output.mkdir(parents=True, exist_ok=True)
     distributed.barrier(process)
     size = 2 * config.model.bandwidth
-    bank = volume_bank(config.data.volumes, size, device=process.device)
+    preprocessing = config.model.grid_preprocessing()  # the model records it; register uses the same
+    bank = volume_bank(config.data.volumes, size, preprocessing, device=process.device)
     torch.manual_seed(config.seed)  # the same initial weights on every rank
     model = DPCN(config.model).to(process.device).train()
     optimiser = torch.optim.AdamW(model.parameters(), lr=config.optimiser.learning_rate,
@@ -202,7 +204,7 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
     real = _real_pairs(config.data.folders, config, crop=config.data.folder_crop, seed=config.seed + process.rank)
     validation, real_validation = None, None
     if process.main:
-        validation_bank = volume_bank(config.data.validation_volumes, size, device=process.device)
+        validation_bank = volume_bank(config.data.validation_volumes, size, preprocessing, device=process.device)
         validation = validation_set(validation_bank, config.data.validation_pairs, config.data.validation_seed,
                                     config.data.pair)
         held_out = _real_pairs(config.data.validation_folders, config, crop=None, seed=0)
