@@ -242,8 +242,8 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
                                                half_width=config.rotation_half_width)
             per_band.append(_with_half_turns(peak_rotation) if config.half_turns else peak_rotation)
         candidates = torch.cat(per_band, 1)
-        origin = torch.cat([torch.full((band.shape[1],), index, device=fixed.device)
-                            for index, band in enumerate(per_band)])  # (K,) the band each candidate came from
+        origin = torch.cat([torch.full((rotations.shape[1],), index, device=fixed.device)
+                            for index, rotations in enumerate(per_band)])  # (K,) the band each candidate came from
     count = candidates.shape[1]
 
     def scale_stage(rotation: Tensor) -> ScaleEstimate:
@@ -256,8 +256,8 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         # Each candidate's sphere correlation in its own band, less that band's best: correlations of different
         # bands are not comparable, their shortfalls from the best are.
         sphere_score = torch.cat([score - score.amax(-1, keepdim=True) for score in (
-            sphere_correlation(moving_sphere, fixed_sphere, weights, directions, band)
-            for (fixed_sphere, moving_sphere), band in zip(spheres, per_band))], 1)
+            sphere_correlation(moving_sphere, fixed_sphere, weights, directions, rotations)
+            for (fixed_sphere, moving_sphere), rotations in zip(spheres, per_band))], 1)
         keep = deduplicate(candidates, sphere_score, math.radians(config.duplicate_degrees))
         if mode == "similarity":
             candidate_scale = scale_stage(candidates).scale
@@ -282,11 +282,11 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         with clock("rotation refinement"), torch.no_grad():
             chosen_band = origin[ranked[:, 0]]  # (batch,): refined on the sphere of the band it came from
             refined = rotation
-            for band in chosen_band.unique().tolist():
-                fine_sphere = isht(fixed_coeffs[band], degrees, bandwidth * config.refine_oversample)  # finely
-                candidate, _ = refine_rotation(spheres[band][1], fine_sphere, weights, directions, rotation[:, None],
+            for index in chosen_band.unique().tolist():
+                fine_sphere = isht(fixed_coeffs[index], degrees, bandwidth * config.refine_oversample)  # finely
+                candidate, _ = refine_rotation(spheres[index][1], fine_sphere, weights, directions, rotation[:, None],
                                                step=math.pi / bandwidth, iterations=config.refine_iterations)
-                refined = torch.where((chosen_band == band)[:, None, None], candidate[:, 0], refined)
+                refined = torch.where((chosen_band == index)[:, None, None], candidate[:, 0], refined)
             rotation = refined
 
     with clock("scale"):
