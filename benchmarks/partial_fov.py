@@ -4,27 +4,33 @@ For each case and overlap fraction (the share of the fixed foreground's extent a
 slab keeps; the image is cropped there, so its field of view ends at the cut), ``--trials`` random poses: rotation
 uniform over SO(3), translation up to 40 mm. The moving volume is the whole other image moved exactly
 (:func:`dpcn_med.evaluation.moved_copy`). ``dpcn_med.register`` runs with the command line's defaults; success is a
-target registration error under 2 mm after refinement, over the corners of the slab's foreground box. Prints a
-table and writes it under docs/.
+target registration error under 2 mm after refinement, over the corners of the slab's foreground box. The local
+baselines of ``dpcn-med benchmark`` (SimpleITK, ANTs, elastix; those installed) register the first
+``--baseline-trials`` poses of each cell. Prints the tables and writes them under docs/, with a figure of success
+against overlap beside them.
 
-    python benchmarks/partial_fov.py --trials 20 [--cases pseudo-ct t1-flair mr-mr] [--overlaps 1 0.8 0.6 0.4]
+    python benchmarks/partial_fov.py --trials 20 --baseline-trials 10 [--cases pseudo-ct t1-flair mr-mr]
+        [--overlaps 1 0.8 0.6 0.4] [--methods dpcn ...]
 
-Variants of the defaults, for a side-by-side row: ``--bandwidth``, ``--sphere-band LOW HIGH`` (one band only:
-:attr:`dpcn_med.solver.SolverConfig.sphere_band` without the extra bands), ``--fill``
+Variants of dpcn_med's defaults (with ``--methods dpcn`` for its row alone): ``--bandwidth``, ``--sphere-band LOW
+HIGH`` (one band only: :attr:`dpcn_med.solver.SolverConfig.sphere_band` without the extra bands), ``--fill``
 (:attr:`dpcn_med.preprocess.Preprocessing.fill`).
 """
 
 from __future__ import annotations
 
 import argparse
+import shutil
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 
+from dpcn_med.benchmark import METHODS, SUCCESS_MM, available_methods
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
 from dpcn_med.register import register
@@ -40,6 +46,8 @@ CASES = {
     "t1-flair": "stroke T1 slab (fixed) to the whole FLAIR (moving)",
     "mr-mr": "seg3d T1 MR slab (fixed) to the whole seg3d T1 MR (moving)",
 }
+BASELINES = ["sitk-geometry", "sitk-moments", "sitk-exhaustive", "ants-rigid", "elastix-rigid"]
+"""The local tools of ``dpcn-med benchmark``'s quick mode (ANTs' multi-start, 25 s a pair, only on request)."""
 
 
 def case_images(name: str) -> tuple[sitk.Image, sitk.Image]:
@@ -73,27 +81,90 @@ def slab(image: sitk.Image, fraction: float, rng: np.random.Generator) -> sitk.I
     return sitk.RegionOfInterest(image, size, index)
 
 
-def run(case: str, overlaps: list[float], trials: int, seed: int, **settings) -> list[dict]:
-    """The rows of one case; ``settings`` go to :func:`dpcn_med.register.register`."""
+def run(case: str, overlaps: list[float], trials: int, seed: int, methods: list[str], baseline_trials: int,
+        **settings) -> list[dict]:
+    """One row per pose and method of one case: ``case``, ``overlap``, ``trial``, ``method``, ``tre_mm``,
+    ``seconds``. ``settings`` go to :func:`dpcn_med.register.register` for ``"dpcn"``; the other methods (keys of
+    :data:`dpcn_med.benchmark.METHODS`) run on the first ``baseline_trials`` poses."""
     fixed_whole, moving_whole = case_images(case)
     rows = []
-    for overlap in overlaps:
-        rng = np.random.default_rng([seed, int(overlap * 100)])
-        errors, seconds = [], []
-        for _ in range(trials):
-            fixed = slab(fixed_whole, overlap, rng)
-            truth = random_similarity(rng, foreground_box(fixed)[0], max_shift_mm=40.0)
-            moving = moved_copy(moving_whole, truth)
-            started = time.perf_counter()
-            result = register(fixed, moving, **settings)
-            seconds.append(time.perf_counter() - started)
-            errors.append(target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)))
-        rows.append({"case": case, "overlap": overlap, "trials": trials,
-                     "success": sum(e < 2.0 for e in errors) / trials, "median_tre": statistics.median(errors),
-                     "seconds": statistics.median(seconds)})
-        print(f"{case} {overlap:.0%}: {rows[-1]['success']:.0%} (median TRE {rows[-1]['median_tre']:.2f} mm)",
-              file=sys.stderr)
+    folder = Path(tempfile.mkdtemp(prefix="dpcn-med-partial-fov-"))
+    try:
+        for overlap in overlaps:
+            rng = np.random.default_rng([seed, int(overlap * 100)])
+            for trial in range(trials):
+                fixed = slab(fixed_whole, overlap, rng)
+                truth = random_similarity(rng, foreground_box(fixed)[0], max_shift_mm=40.0)
+                moving = moved_copy(moving_whole, truth)
+                corners = foreground_corners(fixed)
+                for method in methods:
+                    if method != "dpcn" and trial >= baseline_trials:
+                        continue
+                    started = time.perf_counter()
+                    if method == "dpcn":
+                        estimate = register(fixed, moving, **settings).fixed_to_moving
+                    else:
+                        estimate = METHODS[method][2](fixed, moving, folder)
+                    rows.append({"case": case, "overlap": overlap, "trial": trial, "method": method,
+                                 "tre_mm": target_registration_error(estimate, truth, corners),
+                                 "seconds": time.perf_counter() - started})
+            for method in methods:
+                errors = [r["tre_mm"] for r in rows if (r["overlap"], r["method"]) == (overlap, method)]
+                print(f"{case} {overlap:.0%} {method}: {sum(e < SUCCESS_MM for e in errors)} of {len(errors)}",
+                      file=sys.stderr)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
     return rows
+
+
+def table(rows: list[dict], labels: dict[str, str]) -> str:
+    """Per case, one line per method: success at each overlap, median TRE and seconds over all its poses."""
+    overlaps = list(dict.fromkeys(r["overlap"] for r in rows))
+    lines = []
+    for case in dict.fromkeys(r["case"] for r in rows):
+        lines += [f"### {CASES[case]}", "",
+                  "| method | poses per cell | " + " | ".join(f"{o:.0%} overlap" for o in overlaps)
+                  + " | median TRE (mm) | median seconds |", "|---|---|" + "---|" * (len(overlaps) + 2)]
+        for method, label in labels.items():
+            mine = [r for r in rows if (r["case"], r["method"]) == (case, method)]
+            if not mine:
+                continue
+            cells = [[r["tre_mm"] for r in mine if r["overlap"] == o] for o in overlaps]
+            lines.append(f"| {label} | {len(cells[0])} | "
+                         + " | ".join(f"{100 * sum(e < SUCCESS_MM for e in c) / len(c):.0f}%" for c in cells)
+                         + f" | {statistics.median(r['tre_mm'] for r in mine):.2f}"
+                         + f" | {statistics.median(r['seconds'] for r in mine):.1f} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def figure(rows: list[dict], labels: dict[str, str], path: Path) -> None:
+    """Success against overlap, one panel per case, one line per method (offset by up to a few points so that
+    equal curves do not hide each other)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cases = list(dict.fromkeys(r["case"] for r in rows))
+    figure_, axes = plt.subplots(1, len(cases), figsize=(4.5 * len(cases), 4.2), squeeze=False,
+                                 constrained_layout=True)
+    markers = "os^vDP*X"
+    for ax, case in zip(axes[0], cases):
+        for index, (method, label) in enumerate(labels.items()):
+            mine = [r for r in rows if (r["case"], r["method"]) == (case, method)]
+            overlaps = sorted({r["overlap"] for r in mine})
+            success = [100 * statistics.mean(r["tre_mm"] < SUCCESS_MM for r in mine if r["overlap"] == o)
+                       for o in overlaps]
+            offset = 1.2 * (index - (len(labels) - 1) / 2)  # equal curves stay visible side by side
+            ax.plot([100 * o for o in overlaps], [value + offset for value in success], marker=markers[index % 8],
+                    label=label, lw=2.5 if method == "dpcn" else 1.2)
+        ax.set(title=CASES[case], xlabel="overlap (% of the fixed foreground's extent)",
+               ylabel=f"success (TRE < {SUCCESS_MM:g} mm), %", ylim=(-8, 108))
+        ax.title.set_fontsize(8)
+    figure_.legend(*axes[0][0].get_legend_handles_labels(), loc="outside lower center", ncols=3, fontsize=7)
+    figure_.savefig(path, dpi=110)
+    plt.close(figure_)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -101,26 +172,38 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     parser.add_argument("--overlaps", nargs="+", type=float, default=[1.0, 0.8, 0.6, 0.4])
     parser.add_argument("--trials", type=int, default=20)
+    parser.add_argument("--methods", nargs="+", default=["dpcn", *BASELINES], choices=list(METHODS),
+                        help="dpcn_med (with the settings below) and local baselines of dpcn_med.benchmark")
+    parser.add_argument("--baseline-trials", type=int, default=10,
+                        help="the methods other than dpcn run on the first this many poses of each cell")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--bandwidth", type=int, default=32, help="solver bandwidth B (the CLI's default: 32)")
     parser.add_argument("--sphere-band", type=float, nargs=2, metavar=("LOW", "HIGH"),
                         help="one sphere band instead of the solver's bands, fractions of Nyquist")
     parser.add_argument("--fill", type=float, default=Preprocessing.fill, help="canonical-grid fill")
-    parser.add_argument("--label", default="learning-free (CLI defaults)", help="the row label, e.g. the variant")
-    parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "partial_fov.md")
+    parser.add_argument("--label", default="dpcn_med learning-free (CLI defaults)",
+                        help="the dpcn row's label, e.g. the variant")
+    parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "partial_fov.md",
+                        help="the table; the figure goes beside it (.png)")
     args = parser.parse_args(argv)
+    installed = available_methods()
+    methods = [m for m in args.methods if m in installed]
     solver = SolverConfig(sphere_band=tuple(args.sphere_band), extra_sphere_bands=()) if args.sphere_band else None
     settings = {"bandwidth": args.bandwidth, "solver": solver, "preprocessing": Preprocessing(fill=args.fill)}
-    rows = [row for case in args.cases for row in run(case, args.overlaps, args.trials, args.seed, **settings)]
-    lines = ["| case | method | overlap | trials | success (TRE < 2 mm) | median TRE (mm) | median seconds |",
-             "|---|---|---|---|---|---|---|"]
-    lines += [f"| {CASES[r['case']]} | {args.label} | {r['overlap']:.0%} | {r['trials']} | {r['success']:.0%} | "
-              f"{r['median_tre']:.2f} | {r['seconds']:.1f} |" for r in rows]
+    rows = [row for case in args.cases
+            for row in run(case, args.overlaps, args.trials, args.seed, methods, args.baseline_trials, **settings)]
+    labels = {m: args.label if m == "dpcn" else METHODS[m][0] for m in methods}
+    figure(rows, labels, args.output.with_suffix(".png"))
+    missing = [m for m in args.methods if m not in installed]
     text = (f"# Partial field of view\n\n{generated_by(__file__, argv)}: a slab of the fixed volume "
             f"along a random voxel axis keeping the given share of its foreground's extent, the moving volume whole "
             f"and moved by a random rigid pose (rotation uniform over SO(3), translation up to 40 mm); "
-            f"`dpcn_med.register` with the command line's defaults; TRE over the slab foreground's corners.\n\n"
-            + "\n".join(lines) + "\n")
+            f"`dpcn_med.register` with the command line's defaults unless the label says otherwise, the local "
+            f"baselines (`dpcn-med benchmark`'s settings) on the first poses of each cell; success is a TRE under "
+            f"{SUCCESS_MM:g} mm over the slab foreground's corners; times on a shared CPU."
+            + (f" Not installed, left out: {', '.join(missing)}." if missing else "")
+            + f"\n\n![success against overlap]({args.output.with_suffix('.png').name})\n\n"
+            + table(rows, labels))
     return publish(text, args.output)
 
 
