@@ -11,6 +11,7 @@ against overlap beside them.
 
     python benchmarks/partial_fov.py --trials 20 --baseline-trials 10 [--cases pseudo-ct t1-flair mr-mr]
         [--overlaps 1 0.8 0.6 0.4] [--methods dpcn ...]
+    python benchmarks/partial_fov.py --combine A.csv B.csv ...   # the tables and figure of runs made side by side
 
 Variants of dpcn_med's defaults (with ``--methods dpcn`` for its row alone): ``--bandwidth``, ``--sphere-band LOW
 HIGH`` (one band only: :attr:`dpcn_med.solver.SolverConfig.sphere_band` without the extra bands), ``--fill``
@@ -20,6 +21,7 @@ HIGH`` (one band only: :attr:`dpcn_med.solver.SolverConfig.sphere_band` without 
 from __future__ import annotations
 
 import argparse
+import csv
 import shutil
 import statistics
 import sys
@@ -167,6 +169,19 @@ def figure(rows: list[dict], labels: dict[str, str], path: Path) -> None:
     plt.close(figure_)
 
 
+def write_rows(rows: list[dict], path: Path) -> None:
+    """Every registration, one CSV line each (for ``--combine``)."""
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def read_rows(path: Path) -> list[dict]:
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
@@ -184,15 +199,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--label", default="dpcn_med learning-free (CLI defaults)",
                         help="the dpcn row's label, e.g. the variant")
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "partial_fov.md",
-                        help="the table; the figure goes beside it (.png)")
+                        help="the table; the figure (.png) and every registration (.csv) go beside it")
+    parser.add_argument("--combine", nargs="+", type=Path, metavar="CSV",
+                        help="run nothing: the tables and figure of earlier runs' per-pose CSVs (say, one per case, "
+                             "run side by side on separate cores)")
     args = parser.parse_args(argv)
     installed = available_methods()
     methods = [m for m in args.methods if m in installed]
-    solver = SolverConfig(sphere_band=tuple(args.sphere_band), extra_sphere_bands=()) if args.sphere_band else None
-    settings = {"bandwidth": args.bandwidth, "solver": solver, "preprocessing": Preprocessing(fill=args.fill)}
-    rows = [row for case in args.cases
-            for row in run(case, args.overlaps, args.trials, args.seed, methods, args.baseline_trials, **settings)]
-    labels = {m: args.label if m == "dpcn" else METHODS[m][0] for m in methods}
+    if args.combine:
+        rows = [{**row, "overlap": float(row["overlap"]), "tre_mm": float(row["tre_mm"]),
+                 "seconds": float(row["seconds"])} for path in args.combine for row in read_rows(path)]
+        methods = list(dict.fromkeys(row["method"] for row in rows))
+    else:
+        solver = (SolverConfig(sphere_band=tuple(args.sphere_band), extra_sphere_bands=()) if args.sphere_band
+                  else None)
+        settings = {"bandwidth": args.bandwidth, "solver": solver, "preprocessing": Preprocessing(fill=args.fill)}
+        rows = [{**row, "label": args.label if row["method"] == "dpcn" else METHODS[row["method"]][0]}
+                for case in args.cases
+                for row in run(case, args.overlaps, args.trials, args.seed, methods, args.baseline_trials, **settings)]
+        write_rows(rows, args.output.with_suffix(".csv"))
+    labels = {row["method"]: row["label"] for row in rows}
     figure(rows, labels, args.output.with_suffix(".png"))
     missing = [m for m in args.methods if m not in installed]
     text = (f"# Partial field of view\n\n{generated_by(__file__, argv)}: a slab of the fixed volume "
