@@ -179,6 +179,7 @@ def write_rows(rows: list[dict], path: Path) -> None:
 
 
 def read_rows(path: Path) -> list[dict]:
+    """The rows :func:`write_rows` wrote, as strings."""
     with path.open(newline="") as handle:
         return list(csv.DictReader(handle))
 
@@ -207,10 +208,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     installed = available_methods()
     methods = [m for m in args.methods if m in installed]
+    missing = [] if args.combine else [m for m in args.methods if m not in installed]
+    args.output.parent.mkdir(parents=True, exist_ok=True)
     if args.combine:
         rows = [{**row, "overlap": float(row["overlap"]), "tre_mm": float(row["tre_mm"]),
                  "seconds": float(row["seconds"])} for path in args.combine for row in read_rows(path)]
-        methods = list(dict.fromkeys(row["method"] for row in rows))
     else:
         solver = (SolverConfig(sphere_band=tuple(args.sphere_band), extra_sphere_bands=()) if args.sphere_band
                   else None)
@@ -221,7 +223,6 @@ def main(argv: list[str] | None = None) -> int:
         write_rows(rows, args.output.with_suffix(".csv"))
     labels = {row["method"]: row["label"] for row in rows}
     figure(rows, labels, args.output.with_suffix(".png"))
-    missing = [m for m in args.methods if m not in installed]
     text = (f"# Partial field of view\n\n{generated_by(__file__, argv)}: a slab of the fixed volume "
             f"along a random voxel axis keeping the given share of its foreground's extent, the moving volume whole "
             f"and moved by a random rigid pose (rotation uniform over SO(3), translation up to 40 mm); "
