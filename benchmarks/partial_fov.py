@@ -179,9 +179,10 @@ def write_rows(rows: list[dict], path: Path) -> None:
 
 
 def read_rows(path: Path) -> list[dict]:
-    """The rows :func:`write_rows` wrote, as strings."""
+    """The rows :func:`write_rows` wrote, with their numbers as numbers again."""
     with path.open(newline="") as handle:
-        return list(csv.DictReader(handle))
+        return [{**row, "overlap": float(row["overlap"]), "trial": int(row["trial"]), "tre_mm": float(row["tre_mm"]),
+                 "seconds": float(row["seconds"])} for row in csv.DictReader(handle)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -211,8 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     missing = [] if args.combine else [m for m in args.methods if m not in installed]
     args.output.parent.mkdir(parents=True, exist_ok=True)
     if args.combine:
-        rows = [{**row, "overlap": float(row["overlap"]), "tre_mm": float(row["tre_mm"]),
-                 "seconds": float(row["seconds"])} for path in args.combine for row in read_rows(path)]
+        rows = [row for path in args.combine for row in read_rows(path)]
     else:
         solver = (SolverConfig(sphere_band=tuple(args.sphere_band), extra_sphere_bands=()) if args.sphere_band
                   else None)
