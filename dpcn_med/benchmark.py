@@ -391,6 +391,47 @@ def write_outputs(rows: list[dict], config: BenchmarkConfig, output: str | os.Pa
     return text
 
 
+RESULT_FIELDS = {"case": str, "bin": str, "trial": int, "method": str, "tre_mm": float, "seconds": float,
+                 "peak_mib": float}
+"""Columns of ``results.csv`` and their types (:func:`run_benchmark`'s rows)."""
+
+
+def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
+    """The rows of earlier runs' ``results.csv`` (say, one run per core, split by case), in the folders' order.
+
+    Raises:
+        InputError: a missing or malformed file, or a registration (case, bin, trial, method) found twice.
+    """
+    import csv
+
+    rows, seen = [], {}
+    for folder in folders:
+        path = Path(folder) / "results.csv"
+        try:
+            with path.open(newline="") as handle:
+                reader = csv.DictReader(handle)
+                if set(reader.fieldnames or ()) != set(RESULT_FIELDS):
+                    raise InputError(f"{path}: not a benchmark's results (columns {', '.join(RESULT_FIELDS)})")
+                for line, row in enumerate(reader, start=2):
+                    try:
+                        row = {name: kind(row[name]) for name, kind in RESULT_FIELDS.items()}
+                    except (TypeError, ValueError) as error:
+                        raise InputError(f"{path}: line {line}: {error}") from error
+                    if row["case"] not in CASES or row["method"] not in METHODS:
+                        raise InputError(f"{path}: line {line}: unknown case or method "
+                                         f"{row['case']!r}, {row['method']!r}")
+                    key = (row["case"], row["bin"], row["trial"], row["method"])
+                    if key in seen:
+                        raise InputError(f"{path}: line {line}: {', '.join(map(str, key))} is also in {seen[key]}")
+                    seen[key] = path
+                    rows.append(row)
+        except OSError as error:
+            raise InputError(f"{path}: cannot be read ({error.strerror or error})") from error
+    if not rows:
+        raise InputError(f"{', '.join(map(str, folders))}: no registrations to combine")
+    return rows
+
+
 def _render(showcase: dict, path: Path) -> str:
     """The showcase rendered to ``path``; the summary's paragraph about it."""
     from dpcn_med import render

@@ -99,6 +99,9 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--methods", nargs="+", help="override the methods (default: every installed one)")
     bench.add_argument("--trials", type=int, help="poses per case and bin")
     bench.add_argument("--seed", type=int, default=0)
+    bench.add_argument("--combine", nargs="+", type=Path, metavar="FOLDER",
+                       help="run nothing: one summary and figure of earlier runs' results.csv (say, split by --cases "
+                       "over several cores; the same poses, which follow from the case and --seed)")
 
     info = commands.add_parser("info", help="print an image's geometry and intensity range")
     info.add_argument("image", help="image file or DICOM folder")
@@ -328,7 +331,15 @@ def _benchmark(args: argparse.Namespace) -> int:
                "methods": tuple(args.methods) if args.methods else None, "seed": args.seed}
     config = replace(config, **{k: v for k, v in changes.items() if v is not None})
     showcase: dict = {}
-    rows = benchmark.run_benchmark(config, progress=lambda line: print(line, file=sys.stderr), showcase=showcase)
+    if args.combine:
+        inputs = {folder.resolve() for folder in args.combine}
+        if args.output.resolve() in inputs:
+            raise InputError(f"{args.output}: is an input of --combine; choose another output folder")
+        rows = benchmark.combine_results(args.combine)
+        config = replace(config, trials=max(row["trial"] for row in rows) + 1)
+    else:
+        rows = benchmark.run_benchmark(config, progress=lambda line: print(line, file=sys.stderr),
+                                       showcase=showcase)
     print(benchmark.write_outputs(rows, config, args.output, command=args.command_line, showcase=showcase))
     return EXIT_OK
 
