@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import shutil
 import statistics
 import sys
@@ -34,6 +35,7 @@ import SimpleITK as sitk
 
 from dpcn_med.benchmark import METHODS, SUCCESS_MM, available_methods
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
+from dpcn_med.io import write_text
 from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
 from dpcn_med.register import register
 from dpcn_med.solver import SolverConfig
@@ -171,11 +173,12 @@ def figure(rows: list[dict], labels: dict[str, str], path: Path) -> None:
 
 
 def write_rows(rows: list[dict], path: Path) -> None:
-    """Every registration, one CSV line each (for ``--combine``)."""
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    """Every registration, one CSV line each (for ``--combine``), written atomically."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text(buffer.getvalue(), path)
 
 
 def read_rows(path: Path) -> list[dict]:
@@ -203,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="the dpcn row's label, e.g. the variant")
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "partial_fov.md",
                         help="the table; the figure (.png) and every registration (.csv) go beside it")
+    parser.add_argument("--note", default="", help="a sentence for the description, e.g. when the combined rows ran")
     parser.add_argument("--combine", nargs="+", type=Path, metavar="CSV",
                         help="run nothing: the tables and figure of earlier runs' per-pose CSVs (say, one per case, "
                              "run side by side on separate cores)")
@@ -230,6 +234,7 @@ def main(argv: list[str] | None = None) -> int:
             f"baselines (`dpcn-med benchmark`'s settings) on the first poses of each cell; success is a TRE under "
             f"{SUCCESS_MM:g} mm over the slab foreground's corners; times on a shared CPU."
             + (f" Not installed, left out: {', '.join(missing)}." if missing else "")
+            + (f" {args.note}" if args.note else "")
             + f"\n\n![success against overlap]({args.output.with_suffix('.png').name})\n\n"
             + table(rows, labels))
     return publish(text, args.output)
