@@ -51,7 +51,9 @@ class Refinement:
         mask_margin_voxels: the fixed foreground, dilated by this many (preprocessing) voxels, is where the metric is
             sampled when the user gives no fixed mask.
         starts: global candidates refined: the solver's choice and up to ``starts - 1`` runner-ups (1: its choice
-            only). Every one runs the coarsest pyramid level (:func:`refine_candidates`).
+            only). Every one runs the coarsest pyramid level (:func:`refine_candidates`), about 0.1 s each. Two sphere
+            bands leave 4-15 plausible candidates on a head, and across modalities the translation peak that ranks
+            them is low for all: on 4 of 60 MNI pseudo-CT poses the right one ranked 9th to 13th, so all of them run.
         survivors: how many of them go on to each next level, by their metric (the last value holds for the rest).
         seed: sampling seed (the same inputs give the same result).
     """
@@ -63,7 +65,7 @@ class Refinement:
     iterations: int = 100
     max_step_mm: float = 2.0
     mask_margin_voxels: int = 3
-    starts: int = 8
+    starts: int = 16
     survivors: tuple[int, ...] = (2, 1)
     seed: int = 20261123
 
