@@ -345,7 +345,7 @@ def figure(summary: list[dict], config: BenchmarkConfig, path: Path) -> None:
     cases = list(dict.fromkeys(r["case"] for r in summary))
     centres = [(low + high) / 2 for low, high in config.bins]
     bins = [f"{low}-{high}" for low, high in config.bins]
-    figure_, axes = plt.subplots(1, len(cases), figsize=(4.5 * len(cases), 3.6), squeeze=False,
+    figure_, axes = plt.subplots(1, len(cases), figsize=(4.5 * len(cases), 4.2), squeeze=False,
                                  constrained_layout=True)
     for ax, case in zip(axes[0], cases):
         for method in dict.fromkeys(r["method"] for r in summary):
@@ -354,7 +354,8 @@ def figure(summary: list[dict], config: BenchmarkConfig, path: Path) -> None:
                     label=METHODS[method][0], lw=2.5 if method == "dpcn" else 1.2)
         ax.set(title=CASES[case][0], xlabel="initial rotation (deg)", ylabel=f"success (TRE < {SUCCESS_MM:g} mm), %",
                ylim=(-5, 105), xticks=[b[0] for b in config.bins] + [config.bins[-1][1]])
-    axes[0][-1].legend(fontsize=7, loc="lower left")
+    # Below the panels: inside one, eight methods' labels hide its curves.
+    figure_.legend(*axes[0][0].get_legend_handles_labels(), loc="outside lower center", ncols=4, fontsize=7)
     with io.atomic_output(path) as staged:
         figure_.savefig(staged, dpi=110)
     plt.close(figure_)
