@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import io
 import shutil
 import statistics
 import sys
@@ -35,7 +34,7 @@ import SimpleITK as sitk
 
 from dpcn_med.benchmark import METHODS, SUCCESS_MM, available_methods
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
-from dpcn_med.io import write_text
+from dpcn_med.io import write_csv
 from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
 from dpcn_med.register import register
 from dpcn_med.solver import SolverConfig
@@ -174,11 +173,7 @@ def figure(rows: list[dict], labels: dict[str, str], path: Path) -> None:
 
 def write_rows(rows: list[dict], path: Path) -> None:
     """Every registration, one CSV line each (for ``--combine``), written atomically."""
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    write_text(buffer.getvalue(), path)
+    write_csv(rows, path)
 
 
 def read_rows(path: Path) -> list[dict]:

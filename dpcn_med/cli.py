@@ -275,7 +275,7 @@ def _register_batch(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"{label}{rows[-1]['status']} {rows[-1]['message']}".rstrip())
     args.output.mkdir(parents=True, exist_ok=True)
-    io.write_text(_csv_text(rows), args.output / "summary.csv")
+    io.write_csv(rows, args.output / "summary.csv")
     if not args.quiet:
         print(_table(rows))
         print(f"summary in {args.output / 'summary.csv'}")
@@ -283,16 +283,6 @@ def _register_batch(args: argparse.Namespace) -> int:
         if code in codes:
             return code
     return EXIT_OK
-
-
-def _csv_text(rows: list[dict[str, str]]) -> str:
-    import io as text_io
-
-    buffer = text_io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buffer.getvalue()
 
 
 def _table(rows: list[dict[str, str]]) -> str:

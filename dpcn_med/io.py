@@ -13,7 +13,9 @@ Convention:
 from __future__ import annotations
 
 import contextlib
+import csv
 import gzip
+import io
 import json
 import math
 import os
@@ -593,6 +595,17 @@ def write_text(text: str, path: str | os.PathLike) -> None:
     """Write ``text`` as UTF-8, newlines untranslated, atomically."""
     with atomic_output(path) as temporary, open(temporary, "w", encoding="utf-8", newline="") as stream:
         stream.write(text)
+
+
+def write_csv(rows: list[dict], path: str | os.PathLike, columns: list[str] | None = None) -> None:
+    """``rows`` as a CSV table with a header, ``\n`` line ends, atomically: the columns are ``columns`` (other keys
+    ignored) or the first row's keys."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=columns or list(rows[0]), lineterminator="\n",
+                            extrasaction="ignore" if columns else "raise")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text(buffer.getvalue(), path)
 
 
 # --------------------------------------------------------------------------------------------- tensors and JSON

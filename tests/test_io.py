@@ -620,3 +620,17 @@ class TestReadText:
         assert io.read_text(tmp_path / "b.txt", encoding="latin-1") == "\xff\xfe\x00"
         with pytest.raises(InputNotFoundError, match=r"c\.txt: not found"):
             io.read_text(tmp_path / "c.txt")
+
+
+class TestWriteCsv:
+    def test_header_from_the_first_row_or_the_columns_given(self, tmp_path):
+        rows = [{"id": "a", "tre_mm": 0.5, "note": "x"}, {"id": "b", "tre_mm": 2.0, "note": "y"}]
+        io.write_csv(rows, tmp_path / "all.csv")
+        assert (tmp_path / "all.csv").read_bytes() == b"id,tre_mm,note\na,0.5,x\nb,2.0,y\n"
+        io.write_csv(rows, tmp_path / "some.csv", ["tre_mm", "id"])
+        assert (tmp_path / "some.csv").read_text() == "tre_mm,id\n0.5,a\n2.0,b\n"
+
+    def test_a_row_with_an_unknown_key_leaves_no_file(self, tmp_path):
+        with pytest.raises(ValueError, match="fields not in fieldnames"):
+            io.write_csv([{"id": "a"}, {"id": "b", "other": 1}], tmp_path / "bad.csv")
+        assert list(tmp_path.iterdir()) == []

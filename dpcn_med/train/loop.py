@@ -12,8 +12,6 @@ pairs; rank 0 validates, logs and writes). Everything a run writes goes to ``con
 
 from __future__ import annotations
 
-import csv
-import io as text_io
 import math
 import time
 from dataclasses import replace
@@ -142,14 +140,6 @@ def load_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, config: Train
     return int(saved["step"]), list(saved["rows"])
 
 
-def _csv(rows: list[dict]) -> str:
-    buffer = text_io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n", extrasaction="ignore")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buffer.getvalue()
-
-
 def plot(rows: list[dict], path: Path) -> None:
     """Training losses (log scale) and validation success against steps, as a PNG."""
     import matplotlib
@@ -262,7 +252,7 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
         if step % config.checkpoint_every == 0 or step == config.optimiser.steps:
             if process.main:
                 save_checkpoint(model, optimiser, step, config, rows)
-                io.write_text(_csv(rows), output / "log.csv")
+                io.write_csv(rows, output / "log.csv", COLUMNS)
                 plot(rows, output / "training.png")
             distributed.barrier(process)
     bar.close()
@@ -278,7 +268,7 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
                   "validation_after": validations[-1] if validations else None,
                   "config": replace(config, output=str(output)).to_json()}
         save_model(model, output / "model", record=record)
-        io.write_text(_csv(rows), output / "log.csv")
+        io.write_csv(rows, output / "log.csv", COLUMNS)
         plot(rows, output / "training.png")
     distributed.stop(process)
     return model, record
