@@ -171,13 +171,8 @@ def figure(rows: list[dict], labels: dict[str, str], path: Path) -> None:
     plt.close(figure_)
 
 
-def write_rows(rows: list[dict], path: Path) -> None:
-    """Every registration, one CSV line each (for ``--combine``), written atomically."""
-    write_csv(rows, path)
-
-
 def read_rows(path: Path) -> list[dict]:
-    """The rows :func:`write_rows` wrote, with their numbers as numbers again."""
+    """The rows a run wrote beside its table (one CSV line per registration), with their numbers as numbers again."""
     with path.open(newline="") as handle:
         return [{**row, "overlap": float(row["overlap"]), "trial": int(row["trial"]), "tre_mm": float(row["tre_mm"]),
                  "seconds": float(row["seconds"])} for row in csv.DictReader(handle)]
@@ -219,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = [{**row, "label": args.label if row["method"] == "dpcn" else METHODS[row["method"]][0]}
                 for case in args.cases
                 for row in run(case, args.overlaps, args.trials, args.seed, methods, args.baseline_trials, **settings)]
-        write_rows(rows, args.output.with_suffix(".csv"))
+        write_csv(rows, args.output.with_suffix(".csv"))  # every registration, for --combine
     labels = {row["method"]: row["label"] for row in rows}
     figure(rows, labels, args.output.with_suffix(".png"))
     text = (f"# Partial field of view\n\n{generated_by(__file__, argv)}: a slab of the fixed volume "

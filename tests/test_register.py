@@ -178,7 +178,8 @@ class TestSecondSphereBand:
     def test_a_slab_that_the_first_band_alone_misses(self):
         """One pose of benchmarks/partial_fov.py: a slab of the seg3d pseudo-CT keeping 60% along x (cut through
         the head), the whole T1 moved. The band from 0.05 of Nyquist alone offers no candidate near the truth (the
-        cut changes the outline that its low radii carry); with the band from 0.2 as well, the registration lands."""
+        cut changes the outline that its low radii carry); with the default second band (higher radii) as well, the
+        registration lands."""
         from dpcn_med.synth import pseudo_ct
 
         mr = sitk.ReadImage(str(shared_path("seg3d/MR.nii.gz")))
