@@ -11,7 +11,7 @@ from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.geometry import geodesic_distance
 from dpcn_med.models import DPCN, FeatureExtractor, ModelConfig, load_model, model_paths, pose_loss, save_model
 from dpcn_med.preprocess import Preprocessing
-from dpcn_med.solver import PoseTarget, solve
+from dpcn_med.solver import PoseTarget, SolverConfig, solve
 from dpcn_med.synth import random_poses
 from tests.conftest import volume_grid
 
@@ -52,6 +52,24 @@ class TestModelConfig:
         assert ModelConfig.from_json({**TINY.to_json(), "preprocessing": {}}).grid_preprocessing() == Preprocessing()
         with pytest.raises(InputError, match="preprocessing has unknown keys \\['spacing'\\]"):
             ModelConfig(preprocessing={"spacing": 2.0})
+
+    def test_records_the_solver_settings(self, tmp_path):
+        assert ModelConfig().solver_config() == SolverConfig(bandwidth=32)
+        assert "bandwidth" not in ModelConfig().solver and "extra_sphere_bands" in ModelConfig().solver
+        bands = {"extra_sphere_bands": ((0.2, 0.6), (0.4, 0.95)), "peaks": 6}
+        config = ModelConfig(bandwidth=8, channels=(4, 8, 16), residual_units=0, solver=bands)
+        assert config.solver_config() == SolverConfig(bandwidth=8, **bands)
+        # Nested JSON lists come back as the dataclass's tuples, through a saved model too.
+        assert ModelConfig.from_json(json.loads(json.dumps(config.to_json()))) == config
+        save_model(DPCN(config), tmp_path / "bands")
+        assert load_model(tmp_path / "bands").solver == SolverConfig(bandwidth=8, **bands)
+        # A config saved before the key existed: today's defaults.
+        old = {k: v for k, v in TINY.to_json().items() if k != "solver"}
+        assert ModelConfig.from_json(old).solver_config() == SolverConfig(bandwidth=8)
+        with pytest.raises(InputError, match="solver has unknown keys \\['band'\\]"):
+            ModelConfig(solver={"band": (0.1, 0.5)})
+        with pytest.raises(InputError, match="solver sets \\['bandwidth'\\]: a model does not record"):
+            ModelConfig(solver={"bandwidth": 16})
 
     def test_unknown_keys_refused(self):
         with pytest.raises(InputError, match="unknown keys \\['learning_rate'\\]"):

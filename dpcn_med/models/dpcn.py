@@ -9,7 +9,7 @@ networks learn on well-compensated pairs from the first step; the estimate at in
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 
 import torch
 from torch import Tensor, nn
@@ -25,6 +25,29 @@ from dpcn_med.solver.translation import TranslationEstimate, phase_translation
 from dpcn_med.solver.validation import check_mode
 
 MODALITIES = ("ct", "mr", "us")
+PER_CALL_SOLVER_FIELDS = ("bandwidth", "refine", "alternatives", "profile")
+""":class:`SolverConfig` fields a model does not record: the bandwidth is the model's own, the rest each call sets."""
+
+
+def _tuples(value):
+    """JSON's lists back into the dataclasses' (nested) tuples."""
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
+def _settings(cls: type, values: dict, name: str, exclude: tuple[str, ...] = ()):
+    """``cls(**values)``; unknown and ``exclude`` keys are refused, the message naming the config key ``name``."""
+    unknown = set(values) - {f.name for f in fields(cls)}
+    if unknown:
+        raise InputError(f"{name} has unknown keys {sorted(unknown)}")
+    if set(values) & set(exclude):
+        raise InputError(f"{name} sets {sorted(set(values) & set(exclude))}: a model does not record "
+                         f"{', '.join(exclude)} (the bandwidth is the model's own, the rest each call sets)")
+    return cls(**{k: _tuples(v) for k, v in values.items()})
+
+
+def _recorded(settings, exclude: tuple[str, ...] = ()) -> dict:
+    """A settings dataclass as the dict a :class:`ModelConfig` saves, without the ``exclude`` fields."""
+    return {k: v for k, v in asdict(settings).items() if k not in exclude}
 
 
 @dataclass(frozen=True)
@@ -45,6 +68,9 @@ class ModelConfig:
         temperatures: initial softmax temperatures ``(rotation, scale, translation)`` (learned afterwards).
         preprocessing: the :class:`dpcn_med.preprocess.Preprocessing` fields the training grids are made with, and
             so the ones :func:`dpcn_med.register.register` uses with this model (the defaults when it was created).
+        solver: the :class:`dpcn_med.solver.SolverConfig` fields the model trains and registers with (the defaults
+            when it was created), so that a later change of the learning-free defaults leaves a trained model as it
+            was; all but :data:`PER_CALL_SOLVER_FIELDS`. A config saved before this key existed gets today's defaults.
         version: dpcn_med version that made the model.
     """
 
@@ -58,7 +84,8 @@ class ModelConfig:
     compensation_noise_scale: float = 0.02
     temperatures: tuple[float, float, float] = (StageTemperatures.rotation, StageTemperatures.scale,
                                                 StageTemperatures.translation)
-    preprocessing: dict = field(default_factory=lambda: asdict(Preprocessing()))
+    preprocessing: dict = field(default_factory=lambda: _recorded(Preprocessing()))
+    solver: dict = field(default_factory=lambda: _recorded(SolverConfig(), PER_CALL_SOLVER_FIELDS))
     version: str = __version__
 
     def __post_init__(self) -> None:
@@ -68,16 +95,20 @@ class ModelConfig:
         if len(self.channels) < 2 or (2 * self.bandwidth) % 2 ** (len(self.channels) - 1):
             raise InputError(f"channels {self.channels!r}: need at least two levels, and the grid size "
                              f"{2 * self.bandwidth} must be divisible by 2^{len(self.channels) - 1}")
-        # Complete, so that the saved config says every setting; JSON lists become the dataclass's tuples again.
-        object.__setattr__(self, "preprocessing", asdict(self.grid_preprocessing()))
+        # Complete, so that the saved config says every setting; JSON lists become the dataclasses' tuples again.
+        object.__setattr__(self, "preprocessing", _recorded(self.grid_preprocessing()))
+        object.__setattr__(self, "solver", _recorded(self.solver_config(), PER_CALL_SOLVER_FIELDS))
 
     def grid_preprocessing(self) -> Preprocessing:
         """:attr:`preprocessing` as a :class:`dpcn_med.preprocess.Preprocessing` (missing fields at their
         defaults)."""
-        unknown = set(self.preprocessing) - {f.name for f in fields(Preprocessing)}
-        if unknown:
-            raise InputError(f"preprocessing has unknown keys {sorted(unknown)}")
-        return Preprocessing(**{k: tuple(v) if isinstance(v, list) else v for k, v in self.preprocessing.items()})
+        return _settings(Preprocessing, self.preprocessing, "preprocessing")
+
+    def solver_config(self) -> SolverConfig:
+        """:attr:`solver` as a :class:`dpcn_med.solver.SolverConfig` at the model's bandwidth (missing fields at
+        their defaults)."""
+        return replace(_settings(SolverConfig, self.solver, "solver", PER_CALL_SOLVER_FIELDS),
+                       bandwidth=self.bandwidth)
 
     def to_json(self) -> dict:
         """Plain JSON types (tuples become lists)."""
@@ -90,8 +121,7 @@ class ModelConfig:
         unknown = set(values) - set(known)
         if unknown:
             raise InputError(f"model config has unknown keys {sorted(unknown)}")
-        converted = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
-        return cls(**converted)
+        return cls(**{k: _tuples(v) for k, v in values.items()})
 
 
 @dataclass
@@ -133,7 +163,7 @@ class DPCN(nn.Module):
         else:
             self.rotation_moving, self.translation_moving = extractor(), extractor()
         self.temperatures = Temperatures(StageTemperatures(*config.temperatures))
-        self.solver = SolverConfig(bandwidth=config.bandwidth)
+        self.solver = config.solver_config()
 
     def forward(self, fixed: Tensor, moving: Tensor, target: PoseTarget | None = None,
                 generator: torch.Generator | None = None, mode: str | None = None,
