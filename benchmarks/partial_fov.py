@@ -21,7 +21,6 @@ HIGH`` (one band only: :attr:`dpcn_med.solver.SolverConfig.sphere_band` without 
 from __future__ import annotations
 
 import argparse
-import csv
 import shutil
 import statistics
 import sys
@@ -34,7 +33,7 @@ import SimpleITK as sitk
 
 from dpcn_med.benchmark import METHODS, SUCCESS_MM, available_methods
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
-from dpcn_med.io import write_csv
+from dpcn_med.io import read_csv, write_csv
 from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
 from dpcn_med.register import register
 from dpcn_med.solver import SolverConfig
@@ -82,6 +81,11 @@ def slab(image: sitk.Image, fraction: float, rng: np.random.Generator) -> sitk.I
     index, size = [0, 0, 0], list(image.GetSize())
     index[axis], size[axis] = start, length
     return sitk.RegionOfInterest(image, size, index)
+
+
+ROW_FIELDS = {"case": str, "overlap": float, "trial": int, "method": str, "tre_mm": float, "seconds": float,
+              "label": str}
+"""Columns of the per-registration CSV beside the table, and their types (:func:`run`'s rows and their labels)."""
 
 
 def run(case: str, overlaps: list[float], trials: int, seed: int, methods: list[str], baseline_trials: int,
@@ -171,13 +175,6 @@ def figure(rows: list[dict], labels: dict[str, str], path: Path) -> None:
     plt.close(figure_)
 
 
-def read_rows(path: Path) -> list[dict]:
-    """The rows a run wrote beside its table (one CSV line per registration), with their numbers as numbers again."""
-    with path.open(newline="") as handle:
-        return [{**row, "overlap": float(row["overlap"]), "trial": int(row["trial"]), "tre_mm": float(row["tre_mm"]),
-                 "seconds": float(row["seconds"])} for row in csv.DictReader(handle)]
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
@@ -206,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     missing = [] if args.combine else [m for m in args.methods if m not in installed]
     args.output.parent.mkdir(parents=True, exist_ok=True)
     if args.combine:
-        rows = [row for path in args.combine for row in read_rows(path)]
+        rows = [row for path in args.combine for row in read_csv(path, ROW_FIELDS)]
     else:
         solver = (SolverConfig(sphere_band=tuple(args.sphere_band), extra_sphere_bands=()) if args.sphere_band
                   else None)

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from dpcn_med import io
 from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
 from dpcn_med.preprocess import foreground_box, foreground_mask
@@ -366,8 +367,6 @@ def write_outputs(rows: list[dict], config: BenchmarkConfig, output: str | os.Pa
     """``results.csv`` (every registration), ``summary.md`` and ``success.png`` in ``output``, and ``render.png``
     (:func:`dpcn_med.render.before_after`) of the ``showcase`` from :func:`run_benchmark` where pyvista is
     installed; returns the summary's text."""
-    from dpcn_med import io
-
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     io.write_csv(rows, output / "results.csv")
@@ -394,33 +393,21 @@ def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
     """The rows of earlier runs' ``results.csv`` (say, one run per core, split by case), in the folders' order.
 
     Raises:
-        InputError: a missing or malformed file, or a registration (case, bin, trial, method) found twice.
+        InputError: a missing or malformed file (:func:`dpcn_med.io.read_csv`), an unknown case or method, or a
+            registration (case, bin, trial, method) found twice.
     """
-    import csv
-
     rows, seen = [], {}
     for folder in folders:
         path = Path(folder) / "results.csv"
-        try:
-            with path.open(newline="") as handle:
-                reader = csv.DictReader(handle)
-                if set(reader.fieldnames or ()) != set(RESULT_FIELDS):
-                    raise InputError(f"{path}: not a benchmark's results (columns {', '.join(RESULT_FIELDS)})")
-                for line, row in enumerate(reader, start=2):
-                    try:
-                        row = {name: kind(row[name]) for name, kind in RESULT_FIELDS.items()}
-                    except (TypeError, ValueError) as error:
-                        raise InputError(f"{path}: line {line}: {error}") from error
-                    if row["case"] not in CASES or row["method"] not in METHODS:
-                        raise InputError(f"{path}: line {line}: unknown case or method "
-                                         f"{row['case']!r}, {row['method']!r}")
-                    key = (row["case"], row["bin"], row["trial"], row["method"])
-                    if key in seen:
-                        raise InputError(f"{path}: line {line}: {', '.join(map(str, key))} is also in {seen[key]}")
-                    seen[key] = path
-                    rows.append(row)
-        except OSError as error:
-            raise InputError(f"{path}: cannot be read ({error.strerror or error})") from error
+        for line, row in enumerate(io.read_csv(path, RESULT_FIELDS), start=2):
+            row = {column: row[column] for column in RESULT_FIELDS}
+            if row["case"] not in CASES or row["method"] not in METHODS:
+                raise InputError(f"{path}: line {line}: unknown case or method {row['case']!r}, {row['method']!r}")
+            key = (row["case"], row["bin"], row["trial"], row["method"])
+            if key in seen:
+                raise InputError(f"{path}: line {line}: {', '.join(map(str, key))} is also in {seen[key]}")
+            seen[key] = path
+            rows.append(row)
     if not rows:
         raise InputError(f"{', '.join(map(str, folders))}: no registrations to combine")
     return rows

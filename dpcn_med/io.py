@@ -22,7 +22,7 @@ import os
 import re
 import secrets
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -606,6 +606,28 @@ def write_csv(rows: list[dict], path: str | os.PathLike, columns: list[str] | No
     writer.writeheader()
     writer.writerows(rows)
     write_text(buffer.getvalue(), path)
+
+
+def read_csv(path: str | os.PathLike, columns: dict[str, Callable[[str], Any]]) -> list[dict]:
+    """The rows of a CSV table with a header (as :func:`write_csv` writes it), each value of ``columns`` converted
+    by its type (``{"trial": int, "tre_mm": float}``); other columns stay strings.
+
+    Raises:
+        InputNotFoundError: the file is missing.
+        InputError: a column of ``columns`` is missing, or a value does not convert (the message names the line).
+    """
+    name = os.fspath(path)
+    reader = csv.DictReader(io.StringIO(read_text(name), newline=""))
+    missing = [column for column in columns if column not in (reader.fieldnames or ())]
+    if missing:
+        raise InputError(f"{name}: no column {', '.join(missing)} (expected {', '.join(columns)})")
+    rows = []
+    for line, row in enumerate(reader, start=2):
+        try:
+            rows.append({**row, **{column: kind(row[column]) for column, kind in columns.items()}})
+        except (TypeError, ValueError) as error:
+            raise InputError(f"{name}: line {line}: {error}") from None
+    return rows
 
 
 # --------------------------------------------------------------------------------------------- tensors and JSON

@@ -114,7 +114,8 @@ class TestRunBenchmark:
         assert "mni, 0-30, 0, dpcn-global is also in" in capsys.readouterr().err
         (tmp_path / "bad").mkdir()
         (tmp_path / "bad" / "results.csv").write_text("case,bin\nmni,0-30\n")
-        for folder, message in ((tmp_path / "bad", "not a benchmark's results"), (tmp_path / "none", "cannot be read")):
+        for folder, message in ((tmp_path / "bad", "results.csv: no column trial, method, tre_mm, seconds, peak_mib"),
+                                (tmp_path / "none", "results.csv: not found")):
             assert main(["benchmark", "--combine", str(folder), "-o", str(tmp_path / "out")]) == 2
             assert message in capsys.readouterr().err
         assert not (tmp_path / "twice").exists() and not (tmp_path / "out").exists()

@@ -622,13 +622,26 @@ class TestReadText:
             io.read_text(tmp_path / "c.txt")
 
 
-class TestWriteCsv:
+class TestCsv:
     def test_header_from_the_first_row_or_the_columns_given(self, tmp_path):
         rows = [{"id": "a", "tre_mm": 0.5, "note": "x"}, {"id": "b", "tre_mm": 2.0, "note": "y"}]
         io.write_csv(rows, tmp_path / "all.csv")
         assert (tmp_path / "all.csv").read_bytes() == b"id,tre_mm,note\na,0.5,x\nb,2.0,y\n"
         io.write_csv(rows, tmp_path / "some.csv", ["tre_mm", "id"])
         assert (tmp_path / "some.csv").read_text() == "tre_mm,id\n0.5,a\n2.0,b\n"
+
+    def test_read_back_with_the_types_given(self, tmp_path):
+        rows = [{"id": "a", "trial": 0, "tre_mm": 0.5}, {"id": "b", "trial": 1, "tre_mm": 2.25}]
+        io.write_csv(rows, tmp_path / "rows.csv")
+        assert io.read_csv(tmp_path / "rows.csv", {"trial": int, "tre_mm": float}) == rows
+        assert io.read_csv(tmp_path / "rows.csv", {"tre_mm": float})[1]["trial"] == "1"  # other columns: strings
+        with pytest.raises(InputError, match=r"rows\.csv: no column seconds, method \(expected trial, seconds, "):
+            io.read_csv(tmp_path / "rows.csv", {"trial": int, "seconds": float, "method": str})
+        (tmp_path / "bad.csv").write_text("id,trial\na,0\nb,one\n")
+        with pytest.raises(InputError, match=r"bad\.csv: line 3: invalid literal for int"):
+            io.read_csv(tmp_path / "bad.csv", {"trial": int})
+        with pytest.raises(InputNotFoundError, match=r"none\.csv: not found"):
+            io.read_csv(tmp_path / "none.csv", {"trial": int})
 
     def test_a_row_with_an_unknown_key_leaves_no_file(self, tmp_path):
         with pytest.raises(ValueError, match="fields not in fieldnames"):
