@@ -26,6 +26,9 @@ from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarit
 from dpcn_med.preprocess import foreground_box
 from dpcn_med.register import register
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 VOLUMES = {  # key: (table label, file under shared/data)
     "seg3d": ("seg3d MR (T1, 1 x 0.9 x 0.9 mm)", "seg3d/MR.nii.gz"),
@@ -34,6 +37,8 @@ VOLUMES = {  # key: (table label, file under shared/data)
     "rire": ("RIRE 001 MR T1 (1.25 x 1.25 x 4 mm)", "rire/training_001_mr_T1.mha"),
 }
 MULTIMODAL = "pseudo-ct"
+CASES = [*VOLUMES, MULTIMODAL]
+"""Every case, in the table's order; a case's poses follow from its place here, whichever cases a run picks."""
 
 
 def _pseudo_ct_pair() -> tuple[sitk.Image, sitk.Image]:
@@ -72,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=40)
     parser.add_argument("--modes", nargs="+", default=["rigid", "similarity"], choices=["rigid", "similarity"])
-    parser.add_argument("--cases", nargs="+", default=[*VOLUMES, MULTIMODAL], choices=[*VOLUMES, MULTIMODAL])
+    parser.add_argument("--cases", nargs="+", default=CASES, choices=CASES)
     parser.add_argument("--output", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "benchmarks")
     parser.add_argument("--output-name", help="file name of the table (default register_roundtrip.md)")
     args = parser.parse_args(argv)
@@ -85,24 +90,21 @@ def main(argv: list[str] | None = None) -> int:
               "|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [header]
     for mode in args.modes:
-        for index, key in enumerate(args.cases):
+        for key in args.cases:
             if key == MULTIMODAL:
                 label, (fixed, moving) = "seg3d MR fixed, pseudo-CT of it moving (multimodal)", _pseudo_ct_pair()
             else:
                 label, path = VOLUMES[key]
                 fixed = moving = sitk.ReadImage(str(DATA / path))
-            lines.append(_row(label, mode, args.trials, run_case(fixed, moving, mode, args.trials, seed=index)))
+            row = run_case(fixed, moving, mode, args.trials, seed=CASES.index(key))
+            lines.append(_row(label, mode, args.trials, row))
             print(lines[-1], flush=True)
 
-    text = (f"# Registration round trips (`python benchmarks/register_roundtrip.py --trials {args.trials}`)\n\n"
-            f"CPU: {torch.get_num_threads()} threads; learning-free solver at B = 32; refinement = Mattes mutual "
-            "information, three levels. Poses: rotation uniform over SO(3), shift up to 40 mm, scale 0.85-1.15 in "
-            "similarity mode; TRE over the 8 corners of the fixed foreground box.\n\n" + "\n".join(lines) + "\n")
-    args.output.mkdir(parents=True, exist_ok=True)
-    name = "register_roundtrip.md" if args.output_name is None else args.output_name
-    (args.output / name).write_text(text)
-    print(f"written to {args.output / name}")
-    return 0
+    text = (f"# Registration round trips\n\n{generated_by(__file__, argv)}. CPU: {torch.get_num_threads()} threads; "
+            "`dpcn_med.register` with its defaults (learning-free solver at B = 32, Mattes mutual information "
+            "refinement from its candidates). Poses: rotation uniform over SO(3), shift up to 40 mm, scale 0.85-1.15 "
+            "in similarity mode; TRE over the 8 corners of the fixed foreground box.\n\n" + "\n".join(lines) + "\n")
+    return publish(text, args.output / (args.output_name or "register_roundtrip.md"))
 
 
 def _row(name: str, mode: str, trials: int, row: dict) -> str:
