@@ -399,8 +399,10 @@ def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
     rows, seen = [], {}
     for folder in folders:
         path = Path(folder) / "results.csv"
-        for line, row in enumerate(io.read_csv(path, RESULT_FIELDS), start=2):
-            row = {column: row[column] for column in RESULT_FIELDS}
+        found = io.read_csv(path, RESULT_FIELDS)
+        if found and set(found[0]) != set(RESULT_FIELDS):
+            raise InputError(f"{path}: not a benchmark's results (columns {', '.join(RESULT_FIELDS)}, no others)")
+        for line, row in enumerate(found, start=2):
             if row["case"] not in CASES or row["method"] not in METHODS:
                 raise InputError(f"{path}: line {line}: unknown case or method {row['case']!r}, {row['method']!r}")
             key = (row["case"], row["bin"], row["trial"], row["method"])

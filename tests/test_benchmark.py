@@ -114,7 +114,11 @@ class TestRunBenchmark:
         assert "mni, 0-30, 0, dpcn-global is also in" in capsys.readouterr().err
         (tmp_path / "bad").mkdir()
         (tmp_path / "bad" / "results.csv").write_text("case,bin\nmni,0-30\n")
+        (tmp_path / "more").mkdir()
+        lines = (tmp_path / "both" / "results.csv").read_text().splitlines()
+        (tmp_path / "more" / "results.csv").write_text("\n".join([lines[0] + ",note", lines[1] + ",x"]) + "\n")
         for folder, message in ((tmp_path / "bad", "results.csv: no column trial, method, tre_mm, seconds, peak_mib"),
+                                (tmp_path / "more", "results.csv: not a benchmark's results"),
                                 (tmp_path / "none", "results.csv: not found")):
             assert main(["benchmark", "--combine", str(folder), "-o", str(tmp_path / "out")]) == 2
             assert message in capsys.readouterr().err

@@ -34,14 +34,11 @@ def _tuples(value):
     return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
 
 
-def _settings(cls: type, values: dict, name: str, exclude: tuple[str, ...] = ()):
-    """``cls(**values)``; unknown and ``exclude`` keys are refused, the message naming the config key ``name``."""
+def _settings(cls: type, values: dict, name: str):
+    """``cls(**values)``; unknown keys are refused, the message naming the config key ``name``."""
     unknown = set(values) - {f.name for f in fields(cls)}
     if unknown:
         raise InputError(f"{name} has unknown keys {sorted(unknown)}")
-    if set(values) & set(exclude):
-        raise InputError(f"{name} sets {sorted(set(values) & set(exclude))}: a model does not record "
-                         f"{', '.join(exclude)} (the bandwidth is the model's own, the rest each call sets)")
     return cls(**{k: _tuples(v) for k, v in values.items()})
 
 
@@ -107,8 +104,11 @@ class ModelConfig:
     def solver_config(self) -> SolverConfig:
         """:attr:`solver` as a :class:`dpcn_med.solver.SolverConfig` at the model's bandwidth (missing fields at
         their defaults)."""
-        return replace(_settings(SolverConfig, self.solver, "solver", PER_CALL_SOLVER_FIELDS),
-                       bandwidth=self.bandwidth)
+        per_call = sorted(set(self.solver) & set(PER_CALL_SOLVER_FIELDS))
+        if per_call:
+            raise InputError(f"solver sets {per_call}: a model does not record {', '.join(PER_CALL_SOLVER_FIELDS)} "
+                             "(the bandwidth is the model's own, the rest each call sets)")
+        return replace(_settings(SolverConfig, self.solver, "solver"), bandwidth=self.bandwidth)
 
     def to_json(self) -> dict:
         """Plain JSON types (tuples become lists)."""
