@@ -614,15 +614,20 @@ def read_csv(path: str | os.PathLike, columns: dict[str, Callable[[str], Any]]) 
 
     Raises:
         InputNotFoundError: the file is missing.
-        InputError: a column of ``columns`` is missing, or a value does not convert (the message names the line).
+        InputError: not CSV, a column of ``columns`` is missing, or a value does not convert (the message names the
+            line).
     """
     name = os.fspath(path)
-    reader = csv.DictReader(io.StringIO(read_text(name), newline=""))
+    try:
+        reader = csv.DictReader(io.StringIO(read_text(name), newline=""))
+        table = list(reader)
+    except csv.Error as error:
+        raise InputError(f"{name}: not a readable CSV file ({error})") from None
     missing = [column for column in columns if column not in (reader.fieldnames or ())]
     if missing:
         raise InputError(f"{name}: no column {', '.join(missing)} (expected {', '.join(columns)})")
     rows = []
-    for line, row in enumerate(reader, start=2):
+    for line, row in enumerate(table, start=2):
         try:
             rows.append({**row, **{column: kind(row[column]) for column, kind in columns.items()}})
         except (TypeError, ValueError) as error:

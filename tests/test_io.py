@@ -642,6 +642,9 @@ class TestCsv:
             io.read_csv(tmp_path / "bad.csv", {"trial": int})
         with pytest.raises(InputNotFoundError, match=r"none\.csv: not found"):
             io.read_csv(tmp_path / "none.csv", {"trial": int})
+        (tmp_path / "huge.csv").write_text("id,trial\n" + "a" * 200_000 + ",0\n")  # over csv's field size limit
+        with pytest.raises(InputError, match=r"huge\.csv: not a readable CSV file \(field larger than field limit"):
+            io.read_csv(tmp_path / "huge.csv", {"trial": int})
 
     def test_a_row_with_an_unknown_key_leaves_no_file(self, tmp_path):
         with pytest.raises(ValueError, match="fields not in fieldnames"):

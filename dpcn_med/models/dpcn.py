@@ -117,11 +117,7 @@ class ModelConfig:
     @classmethod
     def from_json(cls, values: dict) -> ModelConfig:
         """Inverse of :meth:`to_json`; unknown keys are refused (a file from another program or version)."""
-        known = {f.name: f for f in fields(cls)}
-        unknown = set(values) - set(known)
-        if unknown:
-            raise InputError(f"model config has unknown keys {sorted(unknown)}")
-        return cls(**{k: _tuples(v) for k, v in values.items()})
+        return _settings(cls, values, "model config")
 
 
 @dataclass
