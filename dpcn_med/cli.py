@@ -7,7 +7,6 @@ written but the solver's confidence is below ``--min-confidence``; 1 internal er
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import shutil
@@ -215,28 +214,30 @@ def _register(args: argparse.Namespace) -> int:
     return code
 
 
+def _path_cell(value: str | None) -> str:
+    """A pairs-file cell that must hold a path (a short row leaves ``None``)."""
+    if not value or not value.strip():
+        raise ValueError("a fixed or moving path is missing")
+    return value.strip()
+
+
 def _read_pairs(path: Path) -> list[dict[str, str]]:
-    if not path.is_file():
-        raise InputError(f"{path}: pairs file not found")
-    try:
-        with open(path, newline="", encoding="utf-8") as handle:
-            rows = list(csv.DictReader(handle))
-    except (UnicodeDecodeError, csv.Error) as error:
-        raise InputError(f"{path}: not a readable CSV file ({error})") from error
-    if not rows or not {"fixed", "moving"} <= set(rows[0]):
-        raise InputError(f"{path}: needs a header row with at least the columns fixed,moving and one pair")
+    from dpcn_med import io
+
+    rows = io.read_csv(path, {"fixed": _path_cell, "moving": _path_cell})
+    if not rows:
+        raise InputError(f"{path}: no pairs (a header row with at least the columns fixed,moving, then a row a pair)")
+
     def resolve(value: str) -> str | None:
         return str(path.parent / value) if value else None
 
     pairs, seen = [], set()
     for number, row in enumerate(rows, start=2):
-        if not row.get("fixed") or not row.get("moving"):
-            raise InputError(f"{path}: line {number} lacks a fixed or moving path")
         pair_id = (row.get("id") or f"{number - 1:03d}-{Path(row['moving']).name.split('.')[0]}").strip()
         if pair_id in seen or not pair_id or any(c in pair_id for c in "/\\"):
             raise InputError(f"{path}: line {number}: id {pair_id!r} is empty, repeated or holds a slash")
         seen.add(pair_id)
-        pairs.append({"id": pair_id, "fixed": resolve(row["fixed"].strip()), "moving": resolve(row["moving"].strip()),
+        pairs.append({"id": pair_id, "fixed": resolve(row["fixed"]), "moving": resolve(row["moving"]),
                       "fixed_mask": resolve((row.get("fixed_mask") or "").strip()),
                       "moving_mask": resolve((row.get("moving_mask") or "").strip())})
     return pairs

@@ -277,11 +277,20 @@ class TestBatch:
         rows = list(csv.DictReader((output / "summary.csv").open()))
         assert rows[0]["status"] == "done earlier"
 
-    def test_bad_pairs_file(self, tmp_path, capsys):
+    @pytest.mark.parametrize("text, message", [
+        ("a,b\n1,2\n", r"pairs\.csv: no column fixed, moving"),
+        ("fixed,moving\n", r"pairs\.csv: no pairs"),
+        ("id,fixed,moving\nfirst,a.nii\n", r"pairs\.csv: line 2: a fixed or moving path is missing"),
+        ("fixed,moving\na.nii,b.nii\n , c.nii\n", r"pairs\.csv: line 3: a fixed or moving path is missing"),
+        ("id,fixed,moving\nx,a.nii,b.nii\nx,c.nii,d.nii\n", r"pairs\.csv: line 3: id 'x' is empty, repeated"),
+        (None, r"pairs\.csv: not found"),
+    ])
+    def test_bad_pairs_file(self, text, message, tmp_path, capsys):
         table = tmp_path / "pairs.csv"
-        table.write_text("a,b\n1,2\n")
+        if text is not None:
+            table.write_text(text)
         assert main(["register-batch", str(table), "-o", str(tmp_path / "o")]) == 2
-        assert "fixed,moving" in capsys.readouterr().err
+        assert re.search(message, capsys.readouterr().err) and not (tmp_path / "o").exists()
 
 
 class TestInfo:
