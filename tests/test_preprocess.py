@@ -126,6 +126,14 @@ class TestNormalizeModality:
         assert out.min() == pytest.approx(0.0) and out.max() == pytest.approx(min(1.0, (1000 - low) / (high - low)))
         assert out[15, 20, 18] == pytest.approx((0 - low) / (high - low))
 
+    def test_ct_window_keeps_geometry(self):
+        image = _ct_like()
+        image.SetOrigin((1.0, 2.0, 3.0))
+        image.SetSpacing((0.5, 0.7, 2.0))
+        out = normalize_modality(image, "ct", image > -500)
+        assert out.GetPixelID() == sitk.sitkFloat32
+        assert (out.GetOrigin(), out.GetSpacing()) == (image.GetOrigin(), image.GetSpacing())
+
     def test_mr_uses_foreground_percentiles(self):
         image = _box_image()
         out = sitk.GetArrayFromImage(normalize_modality(image, "mr", image > 50))

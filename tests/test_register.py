@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import functools
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -282,6 +284,24 @@ class TestSurfaceMesh:
         # Within one voxel of the 2 mm image: the surface is a marching-cubes model of its binary mask, voxelised
         # again at 1 mm, not the image itself.
         assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 2.0
+
+
+class TestStartup:
+    def test_learning_free_registration_skips_slow_imports(self):
+        # MONAI (seconds) and sympy (torch.unravel_index's first call, 0.6 s) were once imported by every
+        # command-line registration of a CT; the learning-free path needs neither.
+        script = (
+            "import sys\n"
+            "import numpy as np, SimpleITK as sitk\n"
+            "from dpcn_med.register import register\n"
+            "array = np.full((40, 40, 40), -1000, np.int16)\n"
+            "array[8:30, 10:34, 12:28] = 40\n"
+            "array[12:20, 14:22, 15:25] = 900\n"
+            "ct = sitk.GetImageFromArray(array)\n"
+            "register(ct, ct, bandwidth=16, refine=False, moving_modality='ct')\n"
+            "print(sorted({name.split('.')[0] for name in sys.modules} & {'monai', 'sympy'}))\n")
+        result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+        assert result.stdout.strip().splitlines()[-1] == "[]", result.stdout
 
 
 class TestErrors:

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
-from dpcn_med.solver.phase_correlation import phase_correlation, refine_peak, soft_argmax
+from dpcn_med.solver.phase_correlation import phase_correlation, refine_peak, soft_argmax, unravel
 
 
 def _smooth_noise(shape: tuple[int, ...], seed: int, dtype: torch.dtype) -> torch.Tensor:
@@ -94,3 +95,11 @@ class TestSoftArgmax:
         surface.requires_grad_()
         assert torch.autograd.gradcheck(
             lambda s, t: (soft_argmax(s, t, 2).shift, soft_argmax(s, t, 2).mass), (surface, temperature))
+
+
+@pytest.mark.parametrize("sizes", [(7,), (5, 3), (4, 6, 9)])
+def test_unravel_matches_numpy(sizes):
+    flat = torch.randint(0, math.prod(sizes), (3, 11), generator=torch.Generator().manual_seed(len(sizes)))
+    expected = np.stack(np.unravel_index(flat.numpy(), sizes), -1)
+    assert unravel(flat, sizes).shape == (3, 11, len(sizes))
+    np.testing.assert_array_equal(unravel(flat, sizes).numpy(), expected)

@@ -96,6 +96,19 @@ class SoftPeak:
     log_prob: Tensor
 
 
+def unravel(flat: Tensor, sizes: tuple[int, ...]) -> Tensor:
+    """``(...,)`` flat indices into a C-ordered array of ``sizes`` -> ``(..., d)`` indices, torch order.
+
+    ``torch.unravel_index`` imports sympy on its first call (about 0.6 s), which every command-line registration
+    paid; integer division does the same here.
+    """
+    indices = []
+    for size in reversed(sizes):
+        indices.append(torch.remainder(flat, size))
+        flat = torch.div(flat, size, rounding_mode="floor")
+    return torch.stack(indices[::-1], -1)
+
+
 def _tie_break(sizes: tuple[int, ...], like: Tensor) -> Tensor:
     """A penalty of at most one machine epsilon growing with the distance from the centre cell: ``sizes``-shaped.
 
@@ -149,7 +162,7 @@ def soft_argmax(surface: Tensor, temperature: Tensor | float, dim: int, *, half_
     logits = surface / temperature
     log_prob = logits - torch.logsumexp(logits.flatten(1), dim=-1).reshape(-1, *([1] * dim))
     flat_index = (surface.detach() - _tie_break(tuple(sizes), surface)).flatten(1).argmax(-1)
-    peak = torch.unravel_index(flat_index, tuple(sizes))  # d tensors (batch,), torch order
+    peak = unravel(flat_index, tuple(sizes)).unbind(-1)  # d tensors (batch,), torch order
     offsets = _window_offsets(dim, half_width, surface.device)  # (W, d)
     valid = torch.ones(batch, offsets.shape[0], dtype=torch.bool, device=surface.device)
     flat_cells = torch.zeros_like(valid, dtype=torch.long)
@@ -208,6 +221,6 @@ def refine_peak(spectrum: Tensor, shift: Tensor, sizes: tuple[int, ...], *, upsa
     real = values.real
     count = steps.numel()
     best = (real - _tie_break((count,) * dim, real)).flatten(1).argmax(-1)
-    index = torch.stack(torch.unravel_index(best, (count,) * dim), -1)  # (batch, d) torch order
+    index = unravel(best, (count,) * dim)  # (batch, d) torch order
     refined = torch.stack([positions[axis].gather(1, index[:, axis, None])[:, 0] for axis in range(dim)], -1)
     return refined.flip(-1), real.flatten(1).gather(1, best[:, None])[:, 0]

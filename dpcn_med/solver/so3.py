@@ -13,7 +13,7 @@ from torch import Tensor
 
 from dpcn_med.geometry import axis_angle_to_matrix, euler_zyz_to_matrix, geodesic_distance, project_to_rotation
 from dpcn_med.solver.harmonics import order_columns
-from dpcn_med.solver.phase_correlation import window_softmax
+from dpcn_med.solver.phase_correlation import unravel, window_softmax
 from dpcn_med.solver.sphere import sample_sphere, soft_colatitude, sphere_mean_weights
 from dpcn_med.solver.wigner import correlation_table
 
@@ -176,7 +176,7 @@ def so3_peaks(correlation: Tensor, count: int) -> Tensor:
     neighbourhood = torch.maximum(neighbourhood, torch.maximum(above, below))
     candidates = torch.where(correlation >= neighbourhood, correlation, torch.full_like(correlation, float("-inf")))
     best = candidates.flatten(1).topk(count, dim=-1).indices
-    return torch.stack(torch.unravel_index(best, correlation.shape[1:]), -1)
+    return unravel(best, tuple(correlation.shape[1:]))
 
 
 def soft_argmax_so3(correlation: Tensor, peaks: Tensor, temperature: Tensor | float, *, half_width: int = 1
