@@ -50,6 +50,10 @@ def _parser() -> argparse.ArgumentParser:
     options.add_argument("--moving-modality", default="auto", choices=("auto", "ct", "mr", "us"))
     options.add_argument("--min-confidence", type=float, default=MIN_CONFIDENCE,
                          help=f"exit with code 3 below this solver confidence (default {MIN_CONFIDENCE})")
+    options.add_argument("--no-overview", dest="overview", action="store_false",
+                         help="do not draw overview.png (saves about 2 s: matplotlib's import and the drawing)")
+    options.add_argument("--no-resampled", dest="resampled", action="store_false",
+                         help="do not write moving_resampled.nii.gz")
     options.add_argument("--progress", choices=("auto", "json"), default="auto",
                          help="auto (default): a bar on a terminal; json: one JSON object per line on stdout, "
                          '{"stage": ..., "fraction": ...}, for programs that drive dpcn-med (the Slicer module)')
@@ -160,14 +164,16 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
     if output.exists() and not output.is_dir():
         raise InputError(f"{output}: exists and is not a folder; choose another output folder")
 
+    outputs = written_outputs(args)
     started = time.perf_counter()
     result = register(fixed, moving, mode=args.mode, model=args.model, bandwidth=args.bandwidth, refine=args.refine,
                       device=args.device, fixed_mask=fixed_mask, moving_mask=moving_mask,
-                      fixed_modality=args.fixed_modality, moving_modality=args.moving_modality, resample=True,
-                      progress=_Progress(args.quiet, args.verbose, label, args.progress == "json"))
+                      fixed_modality=args.fixed_modality, moving_modality=args.moving_modality,
+                      resample=args.resampled, progress=_Progress(args.quiet, args.verbose, label,
+                                                                  args.progress == "json"))
     low = result.confidence < args.min_confidence
     report = registration_report(result, fixed=fixed, moving=moving, fixed_mask=fixed_mask, moving_mask=moving_mask,
-                                 min_confidence=args.min_confidence, outputs=list(OUTPUT_NAMES))
+                                 min_confidence=args.min_confidence, outputs=list(outputs))
     report["timings_s"]["total"] = time.perf_counter() - started
 
     # Stage everything beside the output folder, then move it in: an interrupted run leaves no partial result.
@@ -178,18 +184,28 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
         io.write_transform(result.fixed_to_moving, staging / "transform.h5")
         io.write_transform(result.moving_to_fixed, staging / "inverse.tfm")
         io.write_transform(result.moving_to_fixed, staging / "inverse.h5")
-        io.write_image(result.resampled, staging / "moving_resampled.nii.gz")
-        overview_figure(result.fixed_image, result.moving_image, result.fixed_to_moving, staging / "overview.png",
-                        title=f"{Path(moving).name} onto {Path(fixed).name}: confidence {result.confidence:.3f}, "
-                        f"overlap {result.overlap:.0%}",
-                        centre=result.fixed_grid.centre)  # the fixed foreground centre, already found
+        if args.resampled:
+            io.write_image(result.resampled, staging / "moving_resampled.nii.gz")
+        if args.overview:
+            overview_figure(result.fixed_image, result.moving_image, result.fixed_to_moving, staging / "overview.png",
+                            title=f"{Path(moving).name} onto {Path(fixed).name}: confidence {result.confidence:.3f}, "
+                            f"overlap {result.overlap:.0%}",
+                            centre=result.fixed_grid.centre)  # the fixed foreground centre, already found
         io.write_json(report, staging / "report.json")
         output.mkdir(parents=True, exist_ok=True)
-        for name in OUTPUT_NAMES:  # report.json last: it marks the pair as finished
+        for name in set(OUTPUT_NAMES) - set(outputs):  # an earlier run's, which would read as this one's
+            (output / name).unlink(missing_ok=True)
+        for name in outputs:  # report.json last: it marks the pair as finished
             os.replace(staging / name, output / name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return (EXIT_LOW_CONFIDENCE if low else EXIT_OK), report
+
+
+def written_outputs(args: argparse.Namespace) -> tuple[str, ...]:
+    """The files of :data:`OUTPUT_NAMES` that ``register`` writes with these options, in writing order."""
+    skipped = {"moving_resampled.nii.gz": not args.resampled, "overview.png": not args.overview}
+    return tuple(name for name in OUTPUT_NAMES if not skipped.get(name, False))
 
 
 def _summary_line(report: dict) -> str:
@@ -207,10 +223,12 @@ def _register(args: argparse.Namespace) -> int:
         if args.verbose:
             for stage, seconds in report["timings_s"].items():
                 print(f"  {stage:<28s}{seconds * 1000:10.1f} ms")
-        print(f"outputs in {args.output}/: {', '.join(OUTPUT_NAMES)}")
+        print(f"outputs in {args.output}/: {', '.join(report['outputs'])}")
     if code == EXIT_LOW_CONFIDENCE:
+        look = (f"look at {args.output / 'overview.png'}" if args.overview
+                else "check it (rerun without --no-overview for overview.png)")
         print(f"dpcn-med: warning: confidence {report['confidence']:.4f} is below {args.min_confidence}; the result "
-              f"is written but may be wrong: look at {args.output / 'overview.png'}", file=sys.stderr)
+              f"is written but may be wrong: {look}", file=sys.stderr)
     return code
 
 

@@ -45,6 +45,18 @@ class TestRegister:
         assert sorted(p.name for p in output.iterdir()) == sorted(OUTPUT_NAMES)
         assert not list(output.parent.glob(".dpcn-med-*"))  # no staging folder left behind
 
+    def test_skipped_outputs_are_neither_written_nor_left_from_an_earlier_run(self, pair, tmp_path, capsys):
+        output = tmp_path / "out"
+        assert main(["register", str(pair[0]), str(pair[1]), "-o", str(output), "--no-refine", "-q"]) == 0
+        earlier = json.loads((output / "report.json").read_text())["final"]
+        assert main(["register", str(pair[0]), str(pair[1]), "-o", str(output), "--no-refine", "--no-overview",
+                     "--no-resampled"]) == 0
+        written = [name for name in OUTPUT_NAMES if name not in ("overview.png", "moving_resampled.nii.gz")]
+        assert sorted(p.name for p in output.iterdir()) == sorted(written)
+        report = json.loads((output / "report.json").read_text())
+        assert report["outputs"] == written and report["final"] == earlier
+        assert f"outputs in {output}/: {', '.join(written)}" in capsys.readouterr().out
+
     def test_transform_files_recover_the_truth(self, registered, pair):
         output, _ = registered
         corners = foreground_corners(mni_2mm())

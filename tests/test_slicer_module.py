@@ -294,6 +294,8 @@ class TestProcess:
         command = process.command("f.nrrd", "m.nrrd", "out", Options(), python="PythonSlicer")
         assert command[:3] == ["PythonSlicer", str(process.SCRIPT), "register"]
         assert command[-2:] == ["--progress", "json"]
+        assert "--no-overview" in command and "--no-resampled" not in command
+        assert "--no-resampled" in process.command("f.nrrd", "m.nrrd", "out", Options(), resampled=False)
 
     def test_parses_progress_and_keeps_other_lines(self):
         event = parse_line('{"stage": "solving", "fraction": 0.3, "pair": ""}\n')

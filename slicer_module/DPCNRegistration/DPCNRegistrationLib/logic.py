@@ -94,7 +94,7 @@ class Registration:
                     sitk.WriteImage(mask_on_volume(mask, volume, image), str(paths[f"{role}_mask"]))
             self.job = Job(process.command(paths["fixed"], paths["moving"], self.folder / "result", options,
                                            fixed_mask=paths.get("fixed_mask"), moving_mask=paths.get("moving_mask"),
-                                           python=python))
+                                           resampled=output_volume is not None, python=python))
         except BaseException:
             shutil.rmtree(self.folder, ignore_errors=True)
             raise

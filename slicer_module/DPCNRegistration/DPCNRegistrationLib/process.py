@@ -66,13 +66,15 @@ def python_executable() -> str:
 
 def command(fixed: str | os.PathLike, moving: str | os.PathLike, output: str | os.PathLike, options: Options, *,
             fixed_mask: str | os.PathLike | None = None, moving_mask: str | os.PathLike | None = None,
-            python: str | None = None) -> list[str]:
+            resampled: bool = True, python: str | None = None) -> list[str]:
     """The child's command line: register ``moving`` onto ``fixed`` (each restricted to its mask file, if any) into
-    the folder ``output``."""
+    the folder ``output``, with the resampled moving volume only when ``resampled``. Never the overview figure:
+    Slicer's own views show the result, and drawing it costs the child about 2 s."""
     masks = [argument for flag, path in (("--fixed-mask", fixed_mask), ("--moving-mask", moving_mask))
              if path is not None for argument in (flag, os.fspath(path))]
+    skipped = ["--no-overview"] + ([] if resampled else ["--no-resampled"])
     return [python or python_executable(), os.fspath(SCRIPT), "register", os.fspath(fixed), os.fspath(moving),
-            "-o", os.fspath(output), *options.arguments(), *masks, "--progress", "json"]
+            "-o", os.fspath(output), *options.arguments(), *masks, *skipped, "--progress", "json"]
 
 
 def parse_line(line: str) -> Event:
