@@ -51,7 +51,7 @@ def _parser() -> argparse.ArgumentParser:
     options.add_argument("--min-confidence", type=float, default=MIN_CONFIDENCE,
                          help=f"exit with code 3 below this solver confidence (default {MIN_CONFIDENCE})")
     options.add_argument("--no-overview", dest="overview", action="store_false",
-                         help="do not draw overview.png (saves about 2 s: matplotlib's import and the drawing)")
+                         help="do not draw overview.png (saves about a second: matplotlib's import and the drawing)")
     options.add_argument("--no-resampled", dest="resampled", action="store_false",
                          help="do not write moving_resampled.nii.gz")
     options.add_argument("--progress", choices=("auto", "json"), default="auto",

@@ -246,6 +246,11 @@ class TestLowConfidence:
         assert code == 3 and "below" in capsys.readouterr().err
         report = json.loads((output / "report.json").read_text())
         assert report["status"] == "low confidence" and report["confidence"] < report["min_confidence"]
+        # Without the overview the warning does not send the user to a file that is not there.
+        lean = tmp_path / "lean"
+        assert main(["register", str(pair[0]), str(tmp_path / "noise.nii.gz"), "-o", str(lean), "--no-refine",
+                     "--no-overview"]) == 3
+        assert "rerun without --no-overview" in capsys.readouterr().err and not (lean / "overview.png").exists()
 
 
 class TestProgress:

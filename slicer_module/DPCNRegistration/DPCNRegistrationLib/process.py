@@ -69,7 +69,7 @@ def command(fixed: str | os.PathLike, moving: str | os.PathLike, output: str | o
             resampled: bool = True, python: str | None = None) -> list[str]:
     """The child's command line: register ``moving`` onto ``fixed`` (each restricted to its mask file, if any) into
     the folder ``output``, with the resampled moving volume only when ``resampled``. Never the overview figure:
-    Slicer's own views show the result, and drawing it costs the child about 2 s."""
+    Slicer's own views show the result, and drawing it costs the child about a second."""
     masks = [argument for flag, path in (("--fixed-mask", fixed_mask), ("--moving-mask", moving_mask))
              if path is not None for argument in (flag, os.fspath(path))]
     skipped = ["--no-overview"] + ([] if resampled else ["--no-resampled"])
