@@ -412,24 +412,30 @@ def _crop_to_mask(image: sitk.Image, mask: sitk.Image) -> sitk.Image:
     return sitk.RegionOfInterest(image, (high - low + 1).tolist(), low.tolist())
 
 
+def _float32(image: sitk.Image) -> sitk.Image:
+    """``image`` as float32, the pixel type the registration method wants; no copy when it is one already."""
+    return image if image.GetPixelID() == sitk.sitkFloat32 else sitk.Cast(image, sitk.sitkFloat32)
+
+
 def mattes_metric(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform,
                   masks: tuple[sitk.Image | None, sitk.Image | None],
-                  settings: Refinement = Refinement()) -> float | None:
+                  settings: Refinement = Refinement(), *, crop: bool = True) -> float | None:
     """Mattes mutual information of the pair under ``fixed_to_moving`` at full resolution (lower is better); ``None``
     where the transform maps no sampled fixed point into the moving image (no overlap, e.g. two unrelated scanner
     frames taken as they are stored).
 
     SimpleITK's ``MetricEvaluate`` visits every fixed voxel whatever the sampling settings (measured: the same value
     and time with RANDOM, REGULAR and NONE; 0.7 s on a 1 mm head), so every voxel of the fixed mask counts, and the
-    fixed image is cropped to the mask's box first: the same value, in less time.
+    fixed image is cropped to the mask's box first (``crop``; ``False`` where the caller has cropped it already): the
+    same value, in less time.
     """
     method = _registration_method(fixed, masks, settings)
-    if masks[0] is not None:
+    if crop and masks[0] is not None:
         fixed = _crop_to_mask(fixed, masks[0])
     method.SetMetricSamplingStrategy(method.NONE)
     method.SetInitialTransform(fixed_to_moving)
     try:
-        return method.MetricEvaluate(sitk.Cast(fixed, sitk.sitkFloat32), sitk.Cast(moving, sitk.sitkFloat32))
+        return method.MetricEvaluate(_float32(fixed), _float32(moving))
     except RuntimeError as error:
         if "do not sufficiently overlap" in str(error) or "outside moving image buffer" in str(error):
             return None
@@ -477,9 +483,11 @@ def refine_candidates(pyramid: list[tuple[sitk.Image, sitk.Image]], candidates: 
         overlap).
     """
     level_settings = replace(settings, shrink_factors=(1,), smoothing_mm=(0.0,))  # the images are pre-shrunk
-    coarse_fixed, coarse_moving = pyramid[0]
+    # Each level's fixed image cropped to the fixed mask's box once, for every metric evaluation on that level.
+    cropped = [fixed if masks[0] is None else _crop_to_mask(fixed, masks[0]) for fixed, _ in pyramid]
+    coarse_moving = pyramid[0][1]
     survivors = [(index, candidate) for index, candidate in enumerate(candidates)
-                 if mattes_metric(coarse_fixed, coarse_moving, candidate, masks, level_settings) is not None]
+                 if mattes_metric(cropped[0], coarse_moving, candidate, masks, level_settings, crop=False) is not None]
     metrics: list[float | None] = [None] * len(candidates)
     for level, (fixed, moving) in enumerate(pyramid):
         if level > 0:
@@ -487,8 +495,8 @@ def refine_candidates(pyramid: list[tuple[sitk.Image, sitk.Image]], candidates: 
         scored = []
         for done, (index, transform) in enumerate(survivors, start=1):
             transform = refine_transform(fixed, moving, transform, masks, level_settings)
-            value = mattes_metric(fixed, moving, transform, masks, level_settings) if len(survivors) > 1 or (
-                level == 0) else None
+            value = mattes_metric(cropped[level], moving, transform, masks, level_settings, crop=False) if len(
+                survivors) > 1 or level == 0 else None
             scored.append((math.inf if value is None else value, index, transform))
             if level == 0:
                 metrics[index] = value
@@ -530,7 +538,7 @@ def refine_transform(fixed: sitk.Image, moving: sitk.Image, initial: sitk.Transf
         levels = len(settings.shrink_factors)
         method.AddCommand(sitk.sitkMultiResolutionIterationEvent,
                           lambda: progress(method.GetCurrentLevel() / levels))
-    method.Execute(sitk.Cast(fixed, sitk.sitkFloat32), sitk.Cast(moving, sitk.sitkFloat32))
+    method.Execute(_float32(fixed), _float32(moving))
     # ITK's registration maps a fixed point through the optimised transform first, then the moving initial one.
     return similarity_transform(homogeneous_matrix(initial) @ homogeneous_matrix(residual), np.asarray(centre),
                                 rigid=rigid)
