@@ -11,7 +11,7 @@ by run with this one, so that both see the same machine.
 
     python benchmarks/cli_time.py [--repeats 5] [--compare /tmp/old_clone] [--output docs/benchmarks/cli_time.md]
     python benchmarks/cli_time.py --pair ../shared/data/mridir/mridir_t2_1p0mm.nii.gz \
-        ../shared/data/mridir/mridir_ct_1p0mm.nii.gz --output docs/benchmarks/cli_time_mridir.md
+        ../shared/data/mridir/mridir_ct_1p0mm.nii.gz --output /tmp/cli_time_mridir.md
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -56,9 +57,7 @@ def _run(tree: Path, fixed: Path, moving: Path, extra: list[str], folder: Path) 
                     *extra], check=True, env=environment, cwd=folder)
     wall = time.perf_counter() - started
     timings = json.loads((output / "report.json").read_text())["timings_s"]
-    for entry in output.iterdir():
-        entry.unlink()
-    output.rmdir()
+    shutil.rmtree(output)
     return {"wall": wall, **{stage: timings.get(stage, 0.0) for stage in STAGES}}
 
 

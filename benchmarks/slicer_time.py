@@ -23,21 +23,6 @@ sys.path.insert(0, str(ROOT / "slicer_module" / "DPCNRegistration"))
 from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
 
 
-def _load(scene, path: Path):
-    """A scalar volume node read by Slicer's volume storage node, as File > Add Data does."""
-    import slicer
-
-    storage = slicer.vtkMRMLVolumeArchetypeStorageNode()
-    scene.AddNode(storage)
-    storage.SetFileName(str(path))
-    node = slicer.vtkMRMLScalarVolumeNode()
-    node.SetName(path.name.split(".")[0])
-    scene.AddNode(node)
-    if not storage.ReadData(node):
-        raise SystemExit(f"{path}: Slicer's storage node could not read it")
-    return node
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--resolutions", nargs="+", default=["1p0mm", "1p5mm"], help="MRI-DIR file resolutions")
@@ -50,6 +35,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("needs slicer-core (pip install 'dpcn_med[test]')")
     from DPCNRegistrationLib.logic import register_volumes
     from DPCNRegistrationLib.process import Options
+    from DPCNRegistrationLib.volumes import read_volume
 
     rows = []
     for resolution in args.resolutions:
@@ -60,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
         module, inside = [], []
         for repeat in range(args.repeats):
             scene = slicer.vtkMRMLScene()
-            fixed, moving = (_load(scene, path) for path in paths)
+            fixed, moving = (read_volume(scene, path, path.name.split(".")[0]) for path in paths)
             result = register_volumes(fixed, moving, Options(device="cpu"))
             module.append(result.seconds)
             inside.append(result.report["timings_s"]["total"])

@@ -49,24 +49,13 @@ from DPCNRegistrationLib.volumes import (  # noqa: E402
     mask_on_volume,
     matrix_to_array,
     parent_to_world,
+    read_volume,
     transform_to_world,
     volume_to_image,
 )
 
 MODULE = Path(__file__).resolve().parents[1] / "slicer_module" / "DPCNRegistration"
 QUICK = Options(model="learning-free", bandwidth=16)
-
-
-def load_volume(scene, path: Path, name: str):
-    """A scalar volume node read by Slicer's own volume storage node, as File > Add Data does."""
-    storage = slicer.vtkMRMLVolumeArchetypeStorageNode()
-    scene.AddNode(storage)
-    storage.SetFileName(str(path))
-    node = slicer.vtkMRMLScalarVolumeNode()
-    node.SetName(name)
-    scene.AddNode(node)
-    assert storage.ReadData(node), f"Slicer's storage node could not read {path}"
-    return node
 
 
 def linear_transform(scene, matrix: np.ndarray, name: str = "transform"):
@@ -102,12 +91,18 @@ def homogeneous(points: np.ndarray) -> np.ndarray:
 
 
 class TestVolumes:
+    def test_unreadable_file_is_refused_by_name(self, tmp_path):
+        path = tmp_path / "broken.nrrd"
+        path.write_text("not a volume\n")
+        with pytest.raises(ValueError, match=r"broken\.nrrd: Slicer's volume storage node could not read it"):
+            read_volume(slicer.vtkMRMLScene(), path, "broken")
+
     @pytest.mark.shared_data
     @pytest.mark.parametrize("relative", ["rire/training_001_mr_T1.mha", "stroke/T1.nii.gz",
                                           "mridir/mridir_ct_3p0mm.nii.gz"])
     def test_what_slicer_reads_converts_to_what_simpleitk_reads(self, relative):
         path = shared_path(relative)
-        node = load_volume(slicer.vtkMRMLScene(), path, "volume")
+        node = read_volume(slicer.vtkMRMLScene(), path, "volume")
         converted, expected = volume_to_image(node), sitk.ReadImage(str(path))
         assert converted.GetSize() == expected.GetSize()
         np.testing.assert_allclose(converted.GetSpacing(), expected.GetSpacing(), atol=1e-5)
@@ -364,8 +359,8 @@ def moved_head(tmp_path: Path, *, seed: int, max_shift_mm: float):
     truth = random_similarity(np.random.default_rng(seed), corners.mean(axis=0), max_shift_mm=max_shift_mm)
     io.write_image(moved_copy(image, truth), tmp_path / "moving.nii.gz")
     scene = slicer.vtkMRMLScene()
-    return (image, corners, truth, scene, load_volume(scene, fixed_path, "MR"),
-            load_volume(scene, tmp_path / "moving.nii.gz", "MR moved"))
+    return (image, corners, truth, scene, read_volume(scene, fixed_path, "MR"),
+            read_volume(scene, tmp_path / "moving.nii.gz", "MR moved"))
 
 
 def landing_errors(moving, truth, points: np.ndarray) -> np.ndarray:
@@ -431,7 +426,7 @@ class TestRegistration:
                              *QUICK.arguments()]) in (0, 3)
         scene = slicer.vtkMRMLScene()
         from_cli = read_transform_file(tmp_path / "cli" / "transform.tfm", scene)
-        result = register_volumes(load_volume(scene, t2, "T2"), load_volume(scene, ct, "CT"), QUICK)
+        result = register_volumes(read_volume(scene, t2, "T2"), read_volume(scene, ct, "CT"), QUICK)
         from_module = matrix_to_array(result.transform.GetMatrixTransformToParent())
         np.testing.assert_allclose(from_module[:3, :3], from_cli[:3, :3], atol=1e-3)
         np.testing.assert_allclose(from_module[:3, 3], from_cli[:3, 3], atol=0.05)

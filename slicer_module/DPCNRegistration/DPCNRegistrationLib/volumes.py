@@ -159,5 +159,25 @@ def image_to_volume(image: sitk.Image, node) -> None:
     node.SetIJKToRASMatrix(array_to_matrix(RAS_FROM_LPS @ lps))
 
 
+def read_volume(scene, path, name: str):
+    """A scalar volume node in ``scene`` read from ``path`` by Slicer's own volume storage node, as File > Add Data
+    does; for scripts on bare MRML (slicer-core). In the application, ``slicer.util.loadVolume`` does the same.
+
+    Raises:
+        ValueError: the storage node could not read the file.
+    """
+    import slicer  # here, not at the top: the rest of this module needs only VTK
+
+    storage = slicer.vtkMRMLVolumeArchetypeStorageNode()
+    scene.AddNode(storage)
+    storage.SetFileName(str(path))
+    node = slicer.vtkMRMLScalarVolumeNode()
+    node.SetName(name)
+    scene.AddNode(node)
+    if not storage.ReadData(node):
+        raise ValueError(f"{path}: Slicer's volume storage node could not read it")
+    return node
+
+
 def _name(node) -> str:
     return node.GetName() if node is not None and node.GetName() else "volume"
