@@ -49,6 +49,9 @@ class BenchmarkConfig:
         trials: pairs per case and bin.
         max_shift_mm: translation length up to this.
         seed: of the poses.
+        run_bins: names (``"90-120"``) of the bins to register, all when empty; a pose follows from the case, the
+            seed and its place in every bin's sequence, so a run split over processes by bin registers the same poses
+            as one run.
     """
 
     cases: tuple[str, ...] = ("mni", "mni-pseudo-ct")
@@ -57,6 +60,7 @@ class BenchmarkConfig:
     trials: int = 1
     max_shift_mm: float = 60.0
     seed: int = 0
+    run_bins: tuple[str, ...] = ()
 
 
 QUICK = BenchmarkConfig(methods=("dpcn", "dpcn-global", "sitk-geometry", "sitk-moments", "sitk-exhaustive",
@@ -263,7 +267,9 @@ def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | Non
     """
     installed = available_methods()
     methods = tuple(m for m in config.methods if m in installed or m not in METHODS) or installed
-    for kind, names, known in (("case", config.cases, CASES), ("method", methods, METHODS)):
+    bins = [f"{low}-{high}" for low, high in config.bins]
+    for kind, names, known in (("case", config.cases, CASES), ("method", methods, METHODS),
+                               ("bin", config.run_bins, bins)):
         unknown = [name for name in names if name not in known]
         if unknown:
             raise InputError(f"unknown {kind} {', '.join(unknown)}; use one of {', '.join(known)}")
@@ -278,6 +284,8 @@ def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | Non
             for low, high in config.bins:
                 for trial in range(config.trials):
                     truth = rotation_in_bin(rng, low, high, centre, config.max_shift_mm)
+                    if config.run_bins and f"{low}-{high}" not in config.run_bins:
+                        continue
                     moving = moved_copy(moving_whole, truth)
                     for method in methods:
                         before = reset_peak_rss()
@@ -326,7 +334,9 @@ def markdown(summary: list[dict], config: BenchmarkConfig) -> str:
             row = [cells[(method, b)] for b in bins if (method, b) in cells]
             if not row:
                 continue
-            lines.append(f"| {METHODS[method][0]} | " + " | ".join(f"{100 * r['success']:.0f}%" for r in row)
+            lines.append(f"| {METHODS[method][0]} | "
+                         + " | ".join(f"{100 * cells[(method, b)]['success']:.0f}%" if (method, b) in cells else "-"
+                                      for b in bins)
                          + f" | {statistics.median(r['median_tre_mm'] for r in row):.2f}"
                          + f" | {statistics.median(r['median_seconds'] for r in row):.1f}"
                          + f" | {statistics.median(r['median_peak_mib'] for r in row):.0f} |")
@@ -390,7 +400,7 @@ RESULT_FIELDS = {"case": str, "bin": str, "trial": int, "method": str, "tre_mm":
 
 
 def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
-    """The rows of earlier runs' ``results.csv`` (say, one run per core, split by case), in the folders' order.
+    """The rows of earlier runs' ``results.csv`` (say, one run per core, split by case or bin), in the folders' order.
 
     Raises:
         InputError: a missing or malformed file (:func:`dpcn_med.io.read_csv`), an unknown case or method, or a

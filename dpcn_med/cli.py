@@ -102,9 +102,12 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--methods", nargs="+", help="override the methods (default: every installed one)")
     bench.add_argument("--trials", type=int, help="poses per case and bin")
     bench.add_argument("--seed", type=int, default=0)
+    bench.add_argument("--bins", nargs="+", metavar="BIN",
+                       help="register only these rotation bins, named as in results.csv (90-120); the poses are "
+                       "those of a run of every bin, so runs split by bin over several cores can be combined")
     bench.add_argument("--combine", nargs="+", type=Path, metavar="FOLDER",
                        help="run nothing: one summary and figure of earlier runs' results.csv (say, split by --cases "
-                       "over several cores; the same poses, which follow from the case and --seed)")
+                       "or --bins over several cores; the same poses, which follow from the case and --seed)")
 
     info = commands.add_parser("info", help="print an image's geometry and intensity range")
     info.add_argument("image", help="image file or DICOM folder")
@@ -337,7 +340,8 @@ def _benchmark(args: argparse.Namespace) -> int:
 
     config = benchmark.FULL if args.full else benchmark.QUICK
     changes = {"cases": tuple(args.cases) if args.cases else None, "trials": args.trials,
-               "methods": tuple(args.methods) if args.methods else None, "seed": args.seed}
+               "methods": tuple(args.methods) if args.methods else None, "seed": args.seed,
+               "run_bins": tuple(args.bins) if args.bins else None}
     config = replace(config, **{k: v for k, v in changes.items() if v is not None})
     showcase: dict = {}
     if args.combine:
