@@ -46,7 +46,8 @@ SPACING_RANGE_MM = (0.01, 100.0)
 WORKING_COPIES = 4
 """float32 copies of a volume alive at once while it is normalised and resampled (estimate for the memory check)."""
 GRID_TOLERANCE = 1e-4
-"""Relative and absolute tolerance for a mask's origin, spacing and direction against its image's."""
+"""Relative and absolute tolerance for a mask's spacing and direction against its image's, and for orthonormal
+direction cosines; a mask's origin may differ by this relative to the coordinate, but never by a tenth of a voxel."""
 
 _CHUNK = 1 << 20
 _INPUT_FORMATS = "NIfTI (.nii, .nii.gz), NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd) or a folder of DICOM slices"
@@ -75,7 +76,26 @@ def read_image(path: str | os.PathLike, *, max_bytes: int | None = None) -> sitk
             in memory, holds NaN or infinite voxels, or is constant.
     """
     name = os.fspath(path)
-    image = _read_volume(name, max_bytes)
+    return check_volume(_read_volume(name, max_bytes), name)
+
+
+def check_volume(image: sitk.Image, name: str = "image") -> sitk.Image:
+    """``image`` itself if it is a usable volume (:func:`read_image`'s checks, for images made in memory).
+
+    Args:
+        image: the volume.
+        name: what to call it in messages (its file, or "fixed image").
+
+    Raises:
+        InputError: not a 3-D scalar real-valued volume, an absurd spacing, sheared axes, NaN or infinite voxels, or
+            constant.
+    """
+    _check_shape(name, image.GetDimension(), image.GetSize(), image.GetNumberOfComponentsPerPixel(), False)
+    if image.GetPixelID() in (sitk.sitkComplexFloat32, sitk.sitkComplexFloat64):
+        raise InputError(f"{name}: has complex voxels; expected a real-valued volume (keep the magnitude: "
+                         "sitk.ComplexToModulus)")
+    _check_spacing(name, image.GetSpacing())
+    _check_direction(name, image.GetDirection())
     array = sitk.GetArrayViewFromImage(image)  # a view: ``image`` must stay referenced while it is used
     if array.dtype.kind == "f":
         finite = np.isfinite(array)
@@ -110,7 +130,16 @@ def read_mask(path: str | os.PathLike, image: sitk.Image, *, role: str = "mask",
             more than two values.
     """
     name = os.fspath(path)
-    mask = _read_volume(name, max_bytes)
+    return check_mask(_read_volume(name, max_bytes), image, name, role=role)
+
+
+def check_mask(mask: sitk.Image, image: sitk.Image, name: str = "mask", *, role: str = "mask") -> sitk.Image:
+    """:func:`read_mask`'s checks and result for a mask made in memory; ``name`` is what messages call it.
+
+    Raises:
+        InputError: not a 3-D scalar volume, on another grid than ``image``, empty, or more than two values.
+    """
+    _check_shape(name, mask.GetDimension(), mask.GetSize(), mask.GetNumberOfComponentsPerPixel(), False)
     _check_same_grid(name, role, mask, image)
     array = sitk.GetArrayViewFromImage(mask)  # ``mask`` stays referenced while the view is used
     values = np.unique(array)
@@ -196,7 +225,23 @@ def _split_series(name: str) -> tuple[Path | None, str | None]:
     return (Path(folder), uid) if os.path.isdir(folder) else (None, None)
 
 
+@contextlib.contextmanager
+def _itk_warnings_off() -> Iterator[None]:
+    """ITK's warnings (several lines on stderr each) off: what they report, the caller checks and says itself."""
+    shown = sitk.ProcessObject.GetGlobalWarningDisplay()
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    try:
+        yield
+    finally:
+        sitk.ProcessObject.SetGlobalWarningDisplay(shown)
+
+
 def _read_dicom(name: str, folder: Path, uid: str | None, max_bytes: int | None) -> sitk.Image:
+    with _itk_warnings_off():  # no series, or uneven slices (checked below)
+        return _read_series(name, folder, uid, max_bytes)
+
+
+def _read_series(name: str, folder: Path, uid: str | None, max_bytes: int | None) -> sitk.Image:
     series = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
     if not series:
         count = sum(1 for entry in folder.iterdir() if entry.is_file())
@@ -212,6 +257,7 @@ def _read_dicom(name: str, folder: Path, uid: str | None, max_bytes: int | None)
                          f"{_series_listing(files)}; choose one as {folder}@UID")
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames(files[uid])
+    reader.MetaDataDictionaryArrayUpdateOn()
     try:
         slice_size = _file_information(files[uid][0]).GetSize()
         _check_memory(name, (*slice_size[:2], len(files[uid])), max_bytes)
@@ -221,7 +267,30 @@ def _read_dicom(name: str, folder: Path, uid: str | None, max_bytes: int | None)
                          "files are complete") from None
     _check_shape(name, image.GetDimension(), image.GetSize(), image.GetNumberOfComponentsPerPixel(), False)
     _check_spacing(name, image.GetSpacing())
+    _check_slice_positions(name, reader, image)
     return image
+
+
+def _check_slice_positions(name: str, reader: sitk.ImageSeriesReader, image: sitk.Image) -> None:
+    """Refuse a series whose slices are not evenly spaced along the slice normal: a missing slice, or two
+    acquisitions mixed. ITK only warns and stacks the slices at their mean spacing, which stretches the volume."""
+    key = "0020|0032"  # Image Position (Patient)
+    count = image.GetSize()[2]
+    if not all(reader.HasMetaDataKey(i, key) for i in range(count)):
+        return  # without positions (e.g. secondary captures) ITK stacks the slices as given; nothing to compare
+    try:
+        positions = np.array([[float(v) for v in reader.GetMetaData(i, key).split("\\")] for i in range(count)])
+    except ValueError:
+        return
+    normal = np.reshape(image.GetDirection(), (3, 3))[:, 2]
+    steps = np.diff(positions @ normal)
+    typical = float(np.median(steps))
+    uneven = np.flatnonzero(np.abs(steps - typical) > max(0.01 * abs(typical), 1e-3))
+    if uneven.size:
+        first = int(uneven[0])
+        raise InputError(f"{name}: its {count} slices are not evenly spaced: {steps[first]:.3g} mm between slices "
+                         f"{first + 1} and {first + 2}, {typical:.3g} mm elsewhere ({uneven.size} uneven gap(s)); a "
+                         "slice is missing or the folder mixes acquisitions: export the whole series again")
 
 
 def _file_information(filename: str) -> sitk.ImageFileReader:
@@ -279,6 +348,16 @@ def _check_spacing(name: str, spacing: tuple[float, ...]) -> None:
         return
     raise InputError(f"{name}: spacing {spacing} mm {problem}; set the voxel size in millimetres "
                      "(image.SetSpacing) and save the volume again")
+
+
+def _check_direction(name: str, direction: tuple[float, ...]) -> None:
+    """Refuse sheared or scaled voxel axes: the registration, the resampled output and NIfTI need orthonormal ones."""
+    matrix = np.reshape(direction, (3, 3))
+    error = float(np.abs(matrix.T @ matrix - np.eye(3)).max())
+    if error > GRID_TOLERANCE:
+        raise InputError(f"{name}: its direction cosines {tuple(round(d, 4) for d in direction)} are not orthonormal "
+                         f"(axes sheared or scaled, off by {error:.2g}); resample it onto an orthogonal grid first "
+                         "(sitk.Resample onto a grid with the identity direction)")
 
 
 def _check_memory(name: str, size: tuple[int, ...], max_bytes: int | None) -> None:
@@ -346,9 +425,20 @@ def _check_nifti(path: Path, *, compressed: bool) -> None:
     import nibabel  # imported here: only NIfTI files need it
 
     try:
-        proxy = nibabel.load(path).dataobj  # reads the header only
+        loaded = nibabel.load(path)  # reads the header only
+        proxy = loaded.dataobj
+        # The header as stored: nibabel's checks on loading turn a voxel size of 0 into 1, as SimpleITK does.
+        with (gzip.open(path, "rb") if compressed else open(path, "rb")) as stream:
+            zooms = tuple(float(z) for z in type(loaded.header).from_fileobj(stream, check=False)["pixdim"][1:4])
     except (nibabel.filebasedimages.ImageFileError, OSError, ValueError, EOFError):
-        return  # nibabel refuses a few headers ITK accepts; SimpleITK's own read then has the last word
+        # nibabel refuses a few headers ITK accepts, and SimpleITK's own read then has the last word; but a stream
+        # cut inside its header is refused by nibabel too, and SimpleITK would zero-fill it (measured: 300 bytes).
+        if compressed:
+            _scan_nifti(path, compressed, 0, None, 0)
+        return
+    if 0 in zooms:  # SimpleITK reads a voxel size of 0 as 1 mm (measured), silently
+        raise InputError(f"{path}: its header gives voxel size {zooms} mm (pixdim); set the spacing in millimetres "
+                         "(image.SetSpacing) and save the volume again")
     # The proxy's offset, not the header's vox_offset, which nibabel zeroes on loading.
     offset, dtype, voxels = int(proxy.offset), proxy.dtype, math.prod(proxy.shape)
     needed = offset + voxels * dtype.itemsize
@@ -373,7 +463,8 @@ def _scan_nifti(path: Path, compressed: bool, offset: int, dtype: np.dtype | Non
     pending = b""
     try:
         with (gzip.open(path, "rb") if compressed else open(path, "rb")) as stream:
-            while chunk := stream.read(_CHUNK):
+            # read1: a piece at a time, so ``found`` counts what a truncated stream held before it ended
+            while chunk := stream.read1(_CHUNK):
                 voxel_bytes = chunk[max(offset - found, 0):max(needed - found, 0)]
                 found += len(chunk)
                 if dtype is None:
@@ -385,8 +476,8 @@ def _scan_nifti(path: Path, compressed: bool, offset: int, dtype: np.dtype | Non
                 infinite += int(np.isinf(values).sum())
                 pending = data[whole:]
     except EOFError:
-        raise _truncated(path, f"its compressed stream ends after {found:,} of the {needed:,} bytes the header "
-                               "needs") from None
+        detail = f"of the {needed:,} bytes the header needs" if needed else "before the end of its header"
+        raise _truncated(path, f"its compressed stream ends after {found:,} bytes, {detail}") from None
     except (zlib.error, gzip.BadGzipFile) as error:
         raise InputError(f"{path}: the compressed data is corrupt ({error}); copy or export it again") from None
     return found, nan, infinite
@@ -469,10 +560,13 @@ def _sitk_reason(error: RuntimeError) -> str:
 # ----------------------------------------------------------------------------------------------------- masks, grids
 def _check_same_grid(name: str, role: str, mask: sitk.Image, image: sitk.Image) -> None:
     same_size = mask.GetSize() == image.GetSize()
-    differing = [label for label, ours, theirs in (("origin", mask.GetOrigin(), image.GetOrigin()),
-                                                   ("spacing", mask.GetSpacing(), image.GetSpacing()),
+    differing = [label for label, ours, theirs in (("spacing", mask.GetSpacing(), image.GetSpacing()),
                                                    ("direction", mask.GetDirection(), image.GetDirection()))
                  if not np.allclose(ours, theirs, rtol=GRID_TOLERANCE, atol=GRID_TOLERANCE)]
+    # Relative for float32 storage (NIfTI) of large coordinates, but never a tenth of a voxel.
+    slack = np.minimum(GRID_TOLERANCE * (1 + np.abs(image.GetOrigin())), 0.1 * min(image.GetSpacing()))
+    if (np.abs(np.subtract(mask.GetOrigin(), image.GetOrigin())) > slack).any():
+        differing.append("origin")
     if same_size and not differing:
         return
     shown = [f"size {mask.GetSize()} vs {image.GetSize()}", f"spacing {mask.GetSpacing()} vs {image.GetSpacing()}"]
@@ -619,7 +713,9 @@ def read_csv(path: str | os.PathLike, columns: dict[str, Callable[[str], Any]]) 
     """
     name = os.fspath(path)
     try:
-        reader = csv.DictReader(io.StringIO(read_text(name), newline=""))
+        # utf-8-sig: spreadsheets save "CSV UTF-8" with a byte-order mark
+        reader = csv.DictReader(io.StringIO(read_text(name, encoding="utf-8-sig"), newline=""))
+        reader.fieldnames = [field.strip() for field in reader.fieldnames or ()]
         table = list(reader)
     except csv.Error as error:
         raise InputError(f"{name}: not a readable CSV file ({error})") from None
@@ -685,14 +781,22 @@ def read_text(path: str | os.PathLike, *, encoding: str = "utf-8") -> str:
         InputNotFoundError: the file is missing.
         InputError: not decodable as ``encoding``.
     """
-    name = os.fspath(path)
-    if not os.path.isfile(name):
-        raise InputNotFoundError(f"{name}: not found (no such file); check the path")
+    name = _existing_file(path)
     try:
         with open(name, encoding=encoding) as stream:
             return stream.read()
     except UnicodeDecodeError as error:
         raise InputError(f"{name}: not a {encoding} text file ({error})") from None
+
+
+def _existing_file(path: str | os.PathLike) -> str:
+    """``path`` as a string if it names a file; else the error a reader raises."""
+    name = os.fspath(path)
+    if os.path.isdir(name):
+        raise InputError(f"{name}: is a folder; expected a file")
+    if not os.path.isfile(name):
+        raise InputNotFoundError(f"{name}: not found (no such file); check the path")
+    return name
 
 
 def read_json(path: str | os.PathLike) -> Any:
@@ -702,9 +806,7 @@ def read_json(path: str | os.PathLike) -> Any:
         InputNotFoundError: the file is missing.
         InputError: not UTF-8 JSON.
     """
-    name = os.fspath(path)
-    if not os.path.isfile(name):
-        raise InputNotFoundError(f"{name}: not found (no such file); check the path")
+    name = _existing_file(path)
     try:
         with open(name, encoding="utf-8") as stream:
             return json.load(stream)

@@ -130,6 +130,42 @@ class TestReadImage:
         with pytest.raises(InputError, match=message):
             io.read_image(path)
 
+    def test_nii_gz_truncated_inside_its_header(self, volume, tmp_path):
+        # nibabel cannot read the header; SimpleITK alone returns this file zero-filled.
+        path = tmp_path / "v.nii.gz"
+        sitk.WriteImage(volume, str(path))
+        path.write_bytes(path.read_bytes()[:300])
+        assert sitk.GetArrayViewFromImage(sitk.ReadImage(str(path))).shape == SIZE[::-1]
+        with pytest.raises(InputError, match=r"v\.nii\.gz: is truncated \(its compressed stream ends after \d+ bytes, "
+                                             r"before the end of its header\)"):
+            io.read_image(path)
+
+    def test_truncation_message_counts_the_bytes_found(self, volume, tmp_path):
+        path = tmp_path / "v.nii.gz"
+        sitk.WriteImage(volume, str(path))
+        cut(path)
+        with pytest.raises(InputError) as caught:
+            io.read_image(path)
+        found = int(re.search(r"ends after ([\d,]+) bytes", str(caught.value)).group(1).replace(",", ""))
+        assert 352 < found < 352 + 4 * math.prod(SIZE)
+
+    def test_nifti_voxel_size_of_zero(self, volume, tmp_path):
+        path = tmp_path / "v.nii"
+        sitk.WriteImage(volume, str(path))
+        content = bytearray(path.read_bytes())
+        content[80:84] = np.float32(0).tobytes()  # pixdim[1]: NIfTI-1 keeps pixdim[8] at byte 76
+        path.write_bytes(bytes(content))
+        assert sitk.ReadImage(str(path)).GetSpacing()[0] == 1.0  # what SimpleITK alone makes of it
+        with pytest.raises(InputError, match=r"v\.nii: its header gives voxel size \(0\.0, 1\.25, 2\.5\) mm"):
+            io.read_image(path)
+
+    def test_sheared_axes(self, volume, tmp_path):
+        path = tmp_path / "sheared.nrrd"
+        volume.SetDirection((1, 0, 0, 0, 1, 0.3, 0, 0, 0.954))
+        sitk.WriteImage(volume, str(path))
+        with pytest.raises(InputError, match=r"sheared\.nrrd: its direction cosines .* are not orthonormal"):
+            io.read_image(path)
+
     def test_nii_gz_truncated_inside_the_last_voxels(self, volume, tmp_path):
         # SimpleITK alone would return this file with its last voxels zero-filled.
         path = tmp_path / "v.nii.gz"
@@ -284,6 +320,14 @@ class TestReadImageDicom:
         with pytest.raises(InputError, match=r"is a folder holding no DICOM series \(1 files\)"):
             io.read_image(tmp_path)
 
+    def test_missing_slice(self, tmp_path):
+        # ITK only warns ("Non uniform sampling or missing slices") and stretches the volume over the gap.
+        write_dicom_series(tmp_path, "1.2.3.1", "axial CT", slices=6)
+        next(tmp_path.glob("*-003.dcm")).unlink()
+        with pytest.raises(InputError, match=r"its 5 slices are not evenly spaced: 4 mm between slices 3 and 4, 2 mm "
+                                             r"elsewhere .*a slice is missing"):
+            io.read_image(tmp_path)
+
     def test_single_slice_file(self, tmp_path):
         write_dicom_series(tmp_path, "1.2.3.1", "axial CT", slices=2)
         with pytest.raises(InputError, match="a single DICOM file is one slice: pass the folder"):
@@ -345,6 +389,47 @@ class TestReadMask:
     def test_missing(self, volume, tmp_path):
         with pytest.raises(InputNotFoundError, match=r"m\.nii\.gz: not found"):
             io.read_mask(tmp_path / "m.nii.gz", volume)
+
+    def test_origin_tolerance_is_under_a_tenth_of_a_voxel_at_any_coordinate(self, volume):
+        array = np.zeros(SIZE[::-1], np.uint8)
+        array[5, 5, 5] = 1
+        for origin in ((0.0, 0.0, 0.0), (1e6, -1e6, 5e5)):
+            volume.SetOrigin(origin)
+            mask = sitk.GetImageFromArray(array)
+            mask.CopyInformation(volume)
+            mask.SetOrigin(tuple(np.float32(origin).astype(float)))  # NIfTI's float32 storage passes
+            io.check_mask(mask, volume)
+            mask.SetOrigin(tuple(np.add(origin, (0.0, 0.0, 0.1 * SPACING[0]))))  # a tenth of the finest voxel does not
+            with pytest.raises(InputError, match="not on its image's voxel grid"):
+                io.check_mask(mask, volume)
+
+
+class TestCheckVolume:
+    """Images made in memory get the checks a file's voxels get."""
+
+    def test_complex_voxels(self, volume):
+        with pytest.raises(InputError, match="fixed image: has complex voxels"):
+            io.check_volume(sitk.RealAndImaginaryToComplex(volume, volume), "fixed image")
+
+    def test_infinite_voxels(self, volume):
+        volume[1, 2, 3] = float("inf")
+        with pytest.raises(InputError, match=r"image: holds 0 NaN and 1 infinite voxels"):
+            io.check_volume(volume)
+
+    def test_two_dimensional_mask(self, volume):
+        with pytest.raises(InputError, match="moving mask: is 2-D"):
+            io.check_mask(sitk.Image(20, 24, sitk.sitkUInt8), volume, "moving mask")
+
+
+class TestReadCsv:
+    def test_spreadsheet_byte_order_mark_and_spaced_header(self, tmp_path):
+        path = tmp_path / "t.csv"
+        path.write_bytes("\ufeffid, fixed ,moving\nx,a.nii,b.nii\n".encode())
+        assert io.read_csv(path, {"fixed": str, "moving": str}) == [{"id": "x", "fixed": "a.nii", "moving": "b.nii"}]
+
+    def test_folder(self, tmp_path):
+        with pytest.raises(InputError, match=r": is a folder; expected a file"):
+            io.read_csv(tmp_path, {"fixed": str})
 
 
 def similarity() -> sitk.Similarity3DTransform:
