@@ -197,9 +197,9 @@ def shrink_factors(image: sitk.Image, max_voxels: int) -> list[int]:
 
 
 def prepare(image: sitk.Image, *, modality: str = "auto", mask: sitk.Image | None = None,
-            config: Preprocessing = Preprocessing()) -> PreparedImage:
-    """Normalise an image by modality, find its foreground (within the user's ``mask``, same grid) and blend the two
-    (``config.outline_weight``) into the image the solver sees.
+            config: Preprocessing = Preprocessing(), mask_name: str = "mask") -> PreparedImage:
+    """Normalise an image by modality, find its foreground (within the user's ``mask``, same grid, called
+    ``mask_name`` in messages) and blend the two (``config.outline_weight``) into the image the solver sees.
 
     The result may be on a coarser grid than ``image`` (see ``Preprocessing.max_voxels``); it covers the same space.
     """
@@ -211,7 +211,8 @@ def prepare(image: sitk.Image, *, modality: str = "auto", mask: sitk.Image | Non
     if mask is not None:  # the user's mask says where to look; the object is what is bright there
         foreground = sitk.And(foreground, sitk.Cast(mask > 0, sitk.sitkUInt8))
         if not sitk.GetArrayViewFromImage(foreground).any():
-            raise InputError("the mask holds no foreground of its image (only background inside it)")
+            raise InputError(f"{mask_name}: holds no foreground of its image (only background inside it); give a "
+                             "mask that covers the anatomy, or leave it out")
     used = detect_modality(image, config) if modality == "auto" else modality
     normalised = normalize_modality(image, used, foreground, config)
     if mask is not None:

@@ -169,13 +169,12 @@ def resolve_device(device: str) -> torch.device:
     return resolved
 
 
-def load_image(source: ImageLike) -> sitk.Image:
-    """A checked 3-D volume from a path (image, DICOM folder, surface mesh or point cloud) or a SimpleITK image."""
+def load_image(source: ImageLike, role: str = "image") -> sitk.Image:
+    """A checked 3-D volume from a path (image, DICOM folder, surface mesh or point cloud) or a SimpleITK image
+    (checked as a file's voxels are, :func:`dpcn_med.io.check_volume`; ``role``, such as "fixed image", names it in
+    messages)."""
     if isinstance(source, sitk.Image):
-        if source.GetDimension() != 3 or source.GetNumberOfComponentsPerPixel() != 1:
-            raise InputError(f"image is {source.GetDimension()}-D with {source.GetNumberOfComponentsPerPixel()} "
-                             "component(s) per voxel; expected a 3-D scalar volume")
-        return source
+        return io.check_volume(source, role)
     if io.is_mesh_path(source):
         from dpcn_med.preprocess import voxelize
 
@@ -183,10 +182,19 @@ def load_image(source: ImageLike) -> sitk.Image:
     return io.read_image(source)
 
 
-def _load_mask(source: ImageLike | None, image: sitk.Image) -> sitk.Image | None:
+def _load_mask(source: ImageLike | None, image: sitk.Image, role: str) -> sitk.Image | None:
+    if source is None:
+        return None
+    if isinstance(source, sitk.Image):
+        return io.check_mask(source, image, _mask_name(source, role), role=role)
+    return io.read_mask(source, image, role=role)
+
+
+def _mask_name(source: ImageLike | None, role: str) -> str:
+    """The mask's file, or the argument that passed it ("fixed_mask argument"), for messages."""
     if source is None or isinstance(source, sitk.Image):
-        return source
-    return io.read_mask(source, image)
+        return f"{role.replace(' ', '_')} argument"
+    return os.fspath(source)
 
 
 LEARNING_FREE = ("none", "learning-free")
@@ -266,15 +274,18 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
 
     start = time.perf_counter()
     report("reading", 0.0)
-    fixed_image, moving_image = load_image(fixed), load_image(moving)
-    fixed_mask_image, moving_mask_image = _load_mask(fixed_mask, fixed_image), _load_mask(moving_mask, moving_image)
+    fixed_image, moving_image = load_image(fixed, "fixed image"), load_image(moving, "moving image")
+    fixed_mask_image = _load_mask(fixed_mask, fixed_image, "fixed mask")
+    moving_mask_image = _load_mask(moving_mask, moving_image, "moving mask")
     timings["read"] = time.perf_counter() - start
 
     start = time.perf_counter()
     report("preprocessing", 0.1)
     size = 2 * bandwidth
-    fixed_prepared = prepare(fixed_image, modality=fixed_modality, mask=fixed_mask_image, config=preprocessing)
-    moving_prepared = prepare(moving_image, modality=moving_modality, mask=moving_mask_image, config=preprocessing)
+    fixed_prepared = prepare(fixed_image, modality=fixed_modality, mask=fixed_mask_image, config=preprocessing,
+                             mask_name=_mask_name(fixed_mask, "fixed mask"))
+    moving_prepared = prepare(moving_image, modality=moving_modality, mask=moving_mask_image, config=preprocessing,
+                              mask_name=_mask_name(moving_mask, "moving mask"))
     fixed_grid, moving_grid = pair_grids(fixed_prepared, moving_prepared, size, preprocessing)
     fixed_tensor = to_tensor(resample_to_grid(fixed_prepared.image, fixed_grid)).to(torch_device)
     moving_tensor = to_tensor(resample_to_grid(moving_prepared.image, moving_grid)).to(torch_device)
@@ -437,9 +448,18 @@ def mattes_metric(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.T
     try:
         return method.MetricEvaluate(_float32(fixed), _float32(moving))
     except RuntimeError as error:
-        if "do not sufficiently overlap" in str(error) or "outside moving image buffer" in str(error):
+        if _lost_overlap(error):
             return None
         raise
+
+
+def _lost_overlap(error: RuntimeError) -> bool:
+    """Whether SimpleITK's metric failed because the images, as mapped, (almost) do not overlap."""
+    return "do not sufficiently overlap" in str(error) or "outside moving image buffer" in str(error)
+
+
+MIN_LEVEL_VOXELS = 4
+"""The refinement's pyramid shrinks an axis no further than to this many voxels."""
 
 
 def image_pyramid(fixed: sitk.Image, moving: sitk.Image, settings: Refinement = Refinement()
@@ -457,7 +477,9 @@ def image_pyramid(fixed: sitk.Image, moving: sitk.Image, settings: Refinement = 
             image = sitk.Cast(image, sitk.sitkFloat32)
             if sigma > 0:
                 image = sitk.SmoothingRecursiveGaussian(image, sigma)
-            pair.append(sitk.Shrink(image, [factor] * 3) if factor > 1 else image)
+            # An axis keeps at least MIN_LEVEL_VOXELS voxels: thinner, ITK's metric fails on the level's images.
+            factors = [max(1, min(factor, size // MIN_LEVEL_VOXELS)) for size in image.GetSize()]
+            pair.append(sitk.Shrink(image, factors) if max(factors) > 1 else image)
         levels.append((pair[0], pair[1]))
     return levels
 
@@ -494,9 +516,14 @@ def refine_candidates(pyramid: list[tuple[sitk.Image, sitk.Image]], candidates: 
             survivors = survivors[:settings.survivors[min(level, len(settings.survivors)) - 1]]
         scored = []
         for done, (index, transform) in enumerate(survivors, start=1):
-            transform = refine_transform(fixed, moving, transform, masks, level_settings)
-            value = mattes_metric(cropped[level], moving, transform, masks, level_settings, crop=False) if len(
-                survivors) > 1 or level == 0 else None
+            try:
+                transform = refine_transform(fixed, moving, transform, masks, level_settings)
+                value = mattes_metric(cropped[level], moving, transform, masks, level_settings, crop=False) if len(
+                    survivors) > 1 or level == 0 else None
+            except RuntimeError as error:  # the search drifted off the moving image: this start is lost
+                if not _lost_overlap(error):
+                    raise
+                value = None
             scored.append((math.inf if value is None else value, index, transform))
             if level == 0:
                 metrics[index] = value

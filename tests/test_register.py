@@ -320,7 +320,7 @@ class TestErrors:
 
     @pytest.mark.parametrize("bandwidth", [0, 3, 129])
     def test_bandwidth_out_of_range(self, bandwidth):
-        with pytest.raises(InputError, match=f"bandwidth {bandwidth} is out of range"):
+        with pytest.raises(InputError, match=rf"bandwidth {bandwidth} is out of range: use an integer in \[4, 128\]$"):
             register(mni_2mm(), mni_2mm(), bandwidth=bandwidth)
 
     def test_unknown_modality(self):
@@ -328,8 +328,46 @@ class TestErrors:
             register(mni_2mm(), mni_2mm(), fixed_modality="pet")
 
     def test_two_dimensional_image(self):
-        with pytest.raises(InputError, match="expected a 3-D scalar volume"):
+        with pytest.raises(InputError, match="fixed image: is 2-D"):
             register(sitk.Image([8, 8], sitk.sitkFloat32), mni_2mm())
+
+    def test_images_in_memory_get_the_checks_of_files(self):
+        complex_image = sitk.RealAndImaginaryToComplex(sitk.Cast(mni_2mm(), sitk.sitkFloat32),
+                                                       sitk.Cast(mni_2mm(), sitk.sitkFloat32))
+        with pytest.raises(InputError, match="moving image: has complex voxels"):
+            register(mni_2mm(), complex_image)
+
+    def test_masks_in_memory_get_the_checks_of_files(self):
+        fixed = mni_2mm()
+        labels = sitk.Image(fixed.GetSize(), sitk.sitkUInt8)
+        labels.CopyInformation(fixed)
+        labels[10:20, 10:20, 10:20] = 5
+        labels[30:40, 30:40, 30:40] = 2
+        with pytest.raises(InputError, match="fixed_mask argument: fixed mask is not binary"):
+            register(fixed, fixed, fixed_mask=labels)
+        with pytest.raises(InputError, match="moving_mask argument: moving mask is not on its image's voxel grid"):
+            register(fixed, fixed, moving_mask=sitk.BinShrink(labels, [2, 2, 2]))
+
+    def test_a_mask_over_background_only_is_named(self, tmp_path):
+        fixed = mni_2mm()
+        mask = sitk.Image(fixed.GetSize(), sitk.sitkUInt8)
+        mask.CopyInformation(fixed)
+        mask[0:3, 0:3, 0:3] = 1  # a corner of air
+        sitk.WriteImage(mask, str(tmp_path / "corner.nii.gz"))
+        with pytest.raises(InputError, match=r"corner\.nii\.gz: holds no foreground of its image"):
+            register(fixed, fixed, fixed_mask=tmp_path / "corner.nii.gz")
+
+
+class TestSmallVolumes:
+    def test_a_few_voxels_across_still_refine(self):
+        """The refinement's 4x-shrunk level would leave one voxel of a 6^3 volume (ITK's metric then fails)."""
+        array = np.zeros((6, 6, 6), np.float32)
+        array[1:5, 1:5, 1:5] = np.random.default_rng(0).random((4, 4, 4)) * 100 + 50
+        image = sitk.GetImageFromArray(array)
+        image.SetSpacing((4.0, 4.0, 4.0))
+        result = register(image, image)
+        assert result.metric["dpc"] is not None and result.metric["refined"] is not None
+        np.testing.assert_allclose(homogeneous_matrix(result.fixed_to_moving), np.eye(4), atol=1e-3)
 
     @pytest.mark.parametrize(("device", "message"), [("tpu", "not valid|not supported"), ("cuda:0", "no CUDA GPU")])
     def test_devices(self, device, message):

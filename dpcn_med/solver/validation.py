@@ -54,8 +54,8 @@ def check_bandwidth(bandwidth: int | None, size: int) -> int:
         bandwidth = size // 2
     top = min(size // 2, MAX_BANDWIDTH)
     if not isinstance(bandwidth, int) or not 4 <= bandwidth <= top:
-        raise InputError(f"bandwidth {bandwidth!r} is out of range for grids of size {size}: use an integer in "
-                         f"[4, {top}]")
+        limit = f" (half the grid size {size})" if top < MAX_BANDWIDTH else ""
+        raise InputError(f"bandwidth {bandwidth!r} is out of range: use an integer in [4, {top}]{limit}")
     return bandwidth
 
 
