@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shutil
+import signal
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from collections.abc import Sequence
@@ -48,7 +51,7 @@ def _parser() -> argparse.ArgumentParser:
     options.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:N")
     options.add_argument("--fixed-modality", default="auto", choices=("auto", "ct", "mr", "us"))
     options.add_argument("--moving-modality", default="auto", choices=("auto", "ct", "mr", "us"))
-    options.add_argument("--min-confidence", type=float, default=MIN_CONFIDENCE,
+    options.add_argument("--min-confidence", type=_finite_float, default=MIN_CONFIDENCE,
                          help=f"exit with code 3 below this solver confidence (default {MIN_CONFIDENCE})")
     options.add_argument("--no-overview", dest="overview", action="store_false",
                          help="do not draw overview.png (saves about a second: matplotlib's import and the drawing)")
@@ -140,6 +143,25 @@ class _Progress:
         self.stage = stage
 
 
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def _check_output_folder(output: Path) -> None:
+    """Refuse, before any work, an output folder that exists as a file or cannot be created or written."""
+    if output.exists() and not output.is_dir():
+        raise InputError(f"{output}: exists and is not a folder; choose another output folder")
+    existing = next(folder for folder in (output, *output.absolute().parents) if folder.exists())
+    if not existing.is_dir():
+        raise InputError(f"{output}: cannot be created: {existing} is a file; choose another output folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"{output}: cannot be written: no write permission in {existing}; choose another output "
+                         "folder")
+
+
 def _same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
     try:
         return os.path.samefile(a, b)
@@ -164,8 +186,7 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
             if _same_file(source, output / name):
                 raise InputError(f"{output / name}: is an input of this run; choose another output folder (inputs "
                                  "are never overwritten)")
-    if output.exists() and not output.is_dir():
-        raise InputError(f"{output}: exists and is not a folder; choose another output folder")
+    _check_output_folder(output)
 
     outputs = written_outputs(args)
     started = time.perf_counter()
@@ -179,9 +200,12 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
                                  min_confidence=args.min_confidence, outputs=list(outputs))
     report["timings_s"]["total"] = time.perf_counter() - started
 
-    # Stage everything beside the output folder, then move it in: an interrupted run leaves no partial result.
-    anchor = output.parent if output.parent.exists() else Path.cwd()
-    staging = Path(tempfile.mkdtemp(prefix=".dpcn-med-", dir=anchor))
+    # Stage everything in a hidden folder inside the output folder (one file system, so the moves are renames), then
+    # move it in: a failed or interrupted run leaves no partial result, nor the folders it created.
+    created = [folder for folder in (output, *output.absolute().parents) if not folder.exists()]
+    output.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".dpcn-med-", dir=output))
+    finished = False
     try:
         io.write_transform(result.fixed_to_moving, staging / "transform.tfm")
         io.write_transform(result.fixed_to_moving, staging / "transform.h5")
@@ -195,13 +219,19 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
                             f"overlap {result.overlap:.0%}",
                             centre=result.fixed_grid.centre)  # the fixed foreground centre, already found
         io.write_json(report, staging / "report.json")
-        output.mkdir(parents=True, exist_ok=True)
         for name in set(OUTPUT_NAMES) - set(outputs):  # an earlier run's, which would read as this one's
             (output / name).unlink(missing_ok=True)
         for name in outputs:  # report.json last: it marks the pair as finished
             os.replace(staging / name, output / name)
+        finished = True
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+        if not finished:
+            for folder in created:  # deepest first; one holding anything else stays
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break
     return (EXIT_LOW_CONFIDENCE if low else EXIT_OK), report
 
 
@@ -255,8 +285,9 @@ def _read_pairs(path: Path) -> list[dict[str, str]]:
     pairs, seen = [], set()
     for number, row in enumerate(rows, start=2):
         pair_id = (row.get("id") or f"{number - 1:03d}-{Path(row['moving']).name.split('.')[0]}").strip()
-        if pair_id in seen or not pair_id or any(c in pair_id for c in "/\\"):
-            raise InputError(f"{path}: line {number}: id {pair_id!r} is empty, repeated or holds a slash")
+        if pair_id in seen or pair_id in ("", ".", "..", "summary.csv") or any(c in pair_id for c in "/\\\0"):
+            raise InputError(f"{path}: line {number}: id {pair_id!r} is repeated or not a folder name inside the "
+                             "output folder (empty, '.', '..', 'summary.csv', or a slash)")
         seen.add(pair_id)
         pairs.append({"id": pair_id, "fixed": resolve(row["fixed"]), "moving": resolve(row["moving"]),
                       "fixed_mask": resolve((row.get("fixed_mask") or "").strip()),
@@ -264,17 +295,36 @@ def _read_pairs(path: Path) -> list[dict[str, str]]:
     return pairs
 
 
+def _earlier_report(folder: Path) -> dict | None:
+    """The report.json a finished earlier run left in ``folder``; ``None`` if there is none, or none readable (the
+    pair is then registered again)."""
+    from dpcn_med import io
+
+    try:
+        report = io.read_json(folder / "report.json")
+        float(report["confidence"]), float(report["final"]["rotation_degrees"]), float(report["timings_s"]["total"])
+    except (InputError, KeyError, TypeError, ValueError):
+        return None
+    return report
+
+
 def _register_batch(args: argparse.Namespace) -> int:
     from dpcn_med import io
 
     pairs = _read_pairs(args.pairs)
+    _check_output_folder(args.output)
     rows, codes = [], []
     for index, pair in enumerate(pairs, start=1):
         folder = args.output / pair["id"]
         label = f"[{index}/{len(pairs)}] {pair['id']} "
-        if (folder / "report.json").is_file():
-            rows.append({"id": pair["id"], "status": "done earlier", "confidence": "", "rotation_deg": "",
-                         "seconds": "", "message": ""})
+        earlier = _earlier_report(folder)
+        if earlier is not None:
+            low = earlier["confidence"] < args.min_confidence
+            rows.append({"id": pair["id"], "status": "done earlier" + (", low confidence" if low else ""),
+                         "confidence": f"{earlier['confidence']:.4f}",
+                         "rotation_deg": f"{earlier['final']['rotation_degrees']:.1f}",
+                         "seconds": f"{earlier['timings_s']['total']:.1f}", "message": ""})
+            codes.append(EXIT_LOW_CONFIDENCE if low else EXIT_OK)
             continue
         try:
             code, report = register_pair(pair["fixed"], pair["moving"], folder, args, fixed_mask=pair["fixed_mask"],
@@ -372,6 +422,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.command_line = " ".join(["dpcn-med", *(sys.argv[1:] if argv is None else argv)])
     verbose = getattr(args, "verbose", False)
+    # SIGTERM (a cancel button, a job scheduler) unwinds like Ctrl-C, so staged outputs are removed.
+    terminate = signal.signal(signal.SIGTERM, _interrupt) if threading.current_thread() is threading.main_thread() \
+        else None
     try:
         if args.command == "register":
             return _register(args)
@@ -395,3 +448,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"dpcn-med: internal error: {type(error).__name__}: {message} (rerun with --verbose for the traceback)",
               file=sys.stderr)
         return EXIT_INTERNAL
+    finally:
+        if terminate is not None:
+            signal.signal(signal.SIGTERM, terminate)
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt

@@ -148,6 +148,18 @@ def _truncated(path: Path) -> None:
     path.write_bytes(data[: len(data) // 2])
 
 
+def _truncated_header(path: Path) -> None:
+    # Cut inside its gzip-compressed header: SimpleITK alone reads this as a volume of zeros.
+    sitk.WriteImage(mni_2mm(), str(path))
+    path.write_bytes(path.read_bytes()[:300])
+
+
+def _sheared(path: Path) -> None:
+    image = sitk.GetImageFromArray(np.random.default_rng(0).random((20, 20, 20)).astype(np.float32))
+    image.SetDirection((1, 0, 0, 0, 1, 0.3, 0, 0, 0.954))
+    sitk.WriteImage(image, str(path))
+
+
 def _garbage(path: Path) -> None:
     path.write_bytes(b"this is not an image" * 100)
 
@@ -162,6 +174,8 @@ BAD_INPUTS = {
     "missing": (None, "moving.nii.gz", "not found|does not exist|no such"),
     "garbage": (_garbage, "moving.nii.gz", "not a readable|cannot read|unreadable|could not"),
     "truncated": (_truncated, "moving.nii.gz", "truncated"),
+    "truncated_header": (_truncated_header, "moving.nii.gz", "truncated"),
+    "sheared": (_sheared, "moving.nrrd", "not orthonormal"),
     "two_d": (_two_d, "moving.nii.gz", "2-D"),
     "four_d": (_four_d, "moving.nii.gz", "4-D"),
     "constant": (_constant, "moving.nii.gz", "constant|all voxels"),
@@ -212,6 +226,23 @@ class TestBadInput:
         code = main(["register", str(pair[0]), str(pair[1]), "--fixed-mask", str(mask), "-o", str(tmp_path / "o")])
         err = capsys.readouterr().err
         assert code == 2 and str(mask) in err and not (tmp_path / "o").exists()
+
+    @pytest.mark.parametrize("where", ["under_a_file", "over_a_file"])
+    def test_unusable_output_folder_is_refused_before_any_work(self, where, pair, tmp_path, capsys, monkeypatch):
+        import dpcn_med.register  # noqa: F401  (the package exports the function under the module's name)
+
+        monkeypatch.setattr(sys.modules["dpcn_med.register"], "register",
+                            lambda *args, **kwargs: pytest.fail("registered"))
+        (tmp_path / "notes.txt").write_text("x")
+        output = tmp_path / "notes.txt" / "out" if where == "under_a_file" else tmp_path / "notes.txt"
+        assert main(["register", str(pair[0]), str(pair[1]), "-o", str(output)]) == 2
+        assert re.search(r"notes\.txt.*(is a file|is not a folder)", capsys.readouterr().err)
+        assert (tmp_path / "notes.txt").read_text() == "x"
+
+    def test_min_confidence_must_be_finite(self, pair, tmp_path, capsys):
+        with pytest.raises(SystemExit) as caught:
+            main(["register", str(pair[0]), str(pair[1]), "--min-confidence", "nan", "-o", str(tmp_path / "o")])
+        assert caught.value.code == 2 and "'nan' is not a finite number" in capsys.readouterr().err
 
     def test_missing_model_file(self, pair, tmp_path, capsys):
         code = main(["register", str(pair[0]), str(pair[1]), "--model", str(tmp_path / "ct_mr"), "-o",
@@ -279,6 +310,29 @@ class TestFailureLeavesNothing:
         assert code == 1 and "disk on fire second line of the message" in error and error.count("\n") == 1
         assert not output.exists() and not list(tmp_path.glob(".dpcn-med-*"))
 
+    def test_folders_it_created_are_removed(self, pair, tmp_path, monkeypatch, capsys):
+        import dpcn_med.report
+
+        monkeypatch.setattr(dpcn_med.report, "overview_figure", lambda *args, **kwargs: 1 / 0)
+        (tmp_path / "kept").mkdir()
+        code = main(["register", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "kept" / "a" / "b"), "--no-refine"])
+        assert code == 1 and "ZeroDivisionError" in capsys.readouterr().err
+        assert list(tmp_path.iterdir()) == [tmp_path / "kept"] and not list((tmp_path / "kept").iterdir())
+
+    def test_terminated_while_writing(self, pair, tmp_path, monkeypatch, capsys):
+        """SIGTERM (the Slicer module's Cancel) unwinds like Ctrl-C: the staged files go, nothing is left."""
+        import os
+        import signal
+
+        import dpcn_med.report
+
+        monkeypatch.setattr(dpcn_med.report, "overview_figure",
+                            lambda *args, **kwargs: os.kill(os.getpid(), signal.SIGTERM))
+        handler = signal.getsignal(signal.SIGTERM)
+        code = main(["register", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "out"), "--no-refine"])
+        assert code == 130 and "interrupted" in capsys.readouterr().err
+        assert not (tmp_path / "out").exists() and signal.getsignal(signal.SIGTERM) == handler
+
 
 class TestBatch:
     def test_resumable_with_summary(self, pair, tmp_path, capsys):
@@ -290,22 +344,33 @@ class TestBatch:
         assert [r["status"] for r in rows] == ["ok", "bad input"] and "missing.nii.gz" in rows[1]["message"]
         assert (output / "good" / "report.json").is_file() and not (output / "broken").exists()
         capsys.readouterr()
+        first = rows[0]
         assert main(["register-batch", str(table), "-o", str(output), "--no-refine"]) == 2
         rows = list(csv.DictReader((output / "summary.csv").open()))
-        assert rows[0]["status"] == "done earlier"
+        assert rows[0] == {**first, "status": "done earlier"}  # the earlier run's numbers, read from its report
+        (tmp_path / "good.csv").write_text(f"id,fixed,moving\ngood,{pair[0]},{pair[1]}\n")
+        assert main(["register-batch", str(tmp_path / "good.csv"), "-o", str(output), "--min-confidence", "2"]) == 3
+        rows = list(csv.DictReader((output / "summary.csv").open()))
+        assert rows[0]["status"] == "done earlier, low confidence"
 
     @pytest.mark.parametrize("text, message", [
         ("a,b\n1,2\n", r"pairs\.csv: no column fixed, moving"),
         ("fixed,moving\n", r"pairs\.csv: no pairs"),
         ("id,fixed,moving\nfirst,a.nii\n", r"pairs\.csv: line 2: a fixed or moving path is missing"),
         ("fixed,moving\na.nii,b.nii\n , c.nii\n", r"pairs\.csv: line 3: a fixed or moving path is missing"),
-        ("id,fixed,moving\nx,a.nii,b.nii\nx,c.nii,d.nii\n", r"pairs\.csv: line 3: id 'x' is empty, repeated"),
+        ("id,fixed,moving\nx,a.nii,b.nii\nx,c.nii,d.nii\n", r"pairs\.csv: line 3: id 'x' is repeated or not a folder"),
+        # a spreadsheet's byte-order mark and spaces in the header are read through
+        ("\ufeffid, fixed, moving\n..,a.nii,b.nii\n", r"pairs\.csv: line 2: id '\.\.' is repeated or not a folder"),
+        ("id,fixed,moving\nsummary.csv,a.nii,b.nii\n", r"line 2: id 'summary\.csv' is repeated or not a folder"),
         (None, r"pairs\.csv: not found"),
+        ("", r"pairs\.csv: is a folder"),
     ])
     def test_bad_pairs_file(self, text, message, tmp_path, capsys):
         table = tmp_path / "pairs.csv"
-        if text is not None:
-            table.write_text(text)
+        if text == "":
+            table.mkdir()
+        elif text is not None:
+            table.write_text(text, encoding="utf-8")
         assert main(["register-batch", str(table), "-o", str(tmp_path / "o")]) == 2
         assert re.search(message, capsys.readouterr().err) and not (tmp_path / "o").exists()
 
