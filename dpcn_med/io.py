@@ -72,8 +72,9 @@ def read_image(path: str | os.PathLike, *, max_bytes: int | None = None) -> sitk
 
     Raises:
         InputNotFoundError: the path does not exist.
-        InputError: the file is unreadable, truncated, not a 3-D scalar volume, has an absurd spacing, would not fit
-            in memory, holds NaN or infinite voxels, or is constant.
+        InputError: the file is unreadable, truncated, not a 3-D scalar volume, has an absurd spacing or sheared
+            axes, is a DICOM series with unevenly spaced slices, would not fit in memory, holds NaN or infinite
+            voxels, or is constant.
     """
     name = os.fspath(path)
     return check_volume(_read_volume(name, max_bytes), name)

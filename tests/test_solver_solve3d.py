@@ -41,8 +41,8 @@ class TestValidation:
 
     @pytest.mark.parametrize("bandwidth", [2, 9, 64, 3.5])
     def test_bandwidth_out_of_range(self, bandwidth):
-        with pytest.raises(InputError, match=r"bandwidth .* is out of range: use an integer in \[4, 8\] \(half the grid "
-                                             r"size 16\)"):
+        with pytest.raises(InputError, match=r"bandwidth .* is out of range: use an integer in \[4, 8\] \(half the "
+                                             r"grid size 16\)"):
             solve(torch.zeros(1, 1, 16, 16, 16), torch.zeros(1, 1, 16, 16, 16), bandwidth=bandwidth)
 
     def test_unknown_mode(self):
