@@ -244,8 +244,9 @@ def written_outputs(args: argparse.Namespace) -> tuple[str, ...]:
 def _summary_line(report: dict) -> str:
     final = report["final"]
     shift = ", ".join(f"{v:.1f}" for v in final["translation_mm"])
+    start = ", refined from the stored pose" if report["start"] == "stored pose" else ""
     return (f"rotation {final['rotation_degrees']:.1f} deg, scale {final['scale']:.4f}, translation ({shift}) mm, "
-            f"confidence {report['confidence']:.3f}, {report['timings_s']['total']:.1f} s")
+            f"confidence {report['confidence']:.3f}{start}, {report['timings_s']['total']:.1f} s")
 
 
 def _register(args: argparse.Namespace) -> int:

@@ -13,6 +13,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import SimpleITK as sitk
@@ -29,8 +30,12 @@ from dpcn_med.geometry import (
     similarity_transform,
 )
 from dpcn_med.preprocess import MODALITIES, Preprocessing, pair_grids, prepare, resample_to_grid, to_tensor
-from dpcn_med.solver import SolverConfig, solve
+from dpcn_med.solver import SolverConfig, StageTemperatures, solve
+from dpcn_med.solver.translation import phase_translation
 from dpcn_med.solver.validation import MAX_BANDWIDTH, check_bandwidth, check_mode
+
+if TYPE_CHECKING:
+    from dpcn_med.models import DPCN
 
 ImageLike = str | os.PathLike | sitk.Image
 Progress = Callable[[str, float], None]
@@ -55,6 +60,11 @@ class Refinement:
             bands leave 4-15 plausible candidates on a head, and across modalities the translation peak that ranks
             them is low for all: on 4 of 60 MNI pseudo-CT poses the right one ranked 9th to 13th, so all of them run.
         survivors: how many of them go on to each next level, by their metric (the last value holds for the rest).
+        stored_start: the stored pose (identity) is one more start, after the solver's candidates: inputs already
+            roughly aligned (one scanner frame, or aligned by hand) stay aligned where phase correlation misses (a
+            coronal slab of a head registered onto the whole head as stored came back 85-167 mm off, the stored
+            pose refined was right). Where the stored pose leaves no overlap (unrelated scanner frames) it is dropped
+            before any work, like any candidate.
         seed: sampling seed (the same inputs give the same result).
     """
 
@@ -67,6 +77,7 @@ class Refinement:
     mask_margin_voxels: int = 3
     starts: int = 16
     survivors: tuple[int, ...] = (2, 1)
+    stored_start: bool = True
     seed: int = 20261123
 
 
@@ -80,12 +91,16 @@ class RegistrationResult:
             ``VersorRigid3DTransform`` (rigid) or ``Similarity3DTransform`` (similarity), centred at the fixed grid's
             centre.
         moving_to_fixed: its inverse.
-        dpc_transform: the global estimate that the refinement started from (before refinement).
-        confidence: the solver's confidence in that estimate, in ``[0, 1]`` (mass of its translation peak).
-        candidate: which of the solver's global candidates that is: 0 for the solver's own choice, ``k`` for its
-            ``k``-th runner-up, chosen by :func:`refine_candidates`.
-        candidate_metrics: each candidate's metric after the coarsest refinement level, on that level's images
-            (empty without refinement).
+        dpc_transform: the start that the refinement kept (before refinement): a global estimate, or the identity
+            when ``start`` is ``"stored pose"``.
+        confidence: the solver's confidence in that start, in ``[0, 1]``: the mass of its translation peak (for the
+            stored pose, of the translation correlation at the stored orientation, :func:`stored_pose_confidence`).
+        candidate: which start that is, chosen by :func:`refine_candidates`: 0 for the solver's own choice, ``k``
+            for its ``k``-th runner-up; the stored pose is the last (``len(candidate_metrics) - 1``).
+        start: ``"phase correlation"`` (one of the solver's candidates) or ``"stored pose"``
+            (:attr:`Refinement.stored_start`).
+        candidate_metrics: each start's metric after the coarsest refinement level, on that level's images (empty
+            without refinement), in the order of ``candidate``.
         mode: ``"rigid"`` or ``"similarity"``.
         bandwidth: ``B``; the canonical grids are ``(2B)^3``.
         fixed_grid: canonical cube of the fixed volume.
@@ -117,6 +132,7 @@ class RegistrationResult:
     metric: dict[str, float | None]
     refined: bool
     candidate: int = 0
+    start: str = "phase correlation"
     candidate_metrics: list[float | None] = field(default_factory=list)
     overlap: float = 1.0
     timings: dict[str, float] = field(default_factory=dict)
@@ -136,7 +152,7 @@ class RegistrationResult:
                                "moving_centre_lps": list(self.moving_grid.centre)},
             "dpc": describe_transform(self.dpc_transform),
             "final": describe_transform(self.fixed_to_moving),
-            "refined": self.refined, "candidate": self.candidate,
+            "refined": self.refined, "candidate": self.candidate, "start": self.start,
             "candidate_mattes_mutual_information": self.candidate_metrics, "overlap_fraction": self.overlap,
             "mattes_mutual_information": self.metric,
             "timings_s": self.timings,
@@ -313,6 +329,10 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
                                            alternatives.translation[0, k], fixed_grid, moving_grid),
                         float(alternatives.confidence[0, k]))
                        for k in range(alternatives.score.shape[1]) if alternatives.score[0, k] > float("-inf")]
+    stored = len(candidates) if refine and refinement.stored_start else None  # the stored pose's index
+    if stored is not None:
+        candidates.append((similarity_transform(np.eye(4), np.asarray(fixed_grid.centre), rigid=mode == "rigid"),
+                           stored_pose_confidence(fixed_tensor, moving_tensor, network, solver)))
 
     metric: dict[str, float | None] = {"stored": None, "dpc": None, "refined": None}
     chosen, candidate_metrics = 0, []
@@ -350,12 +370,28 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
     report("done", 1.0)
     return RegistrationResult(
         fixed_to_moving=final, moving_to_fixed=final.GetInverse(), dpc_transform=candidates[chosen][0],
-        confidence=candidates[chosen][1], candidate=chosen, candidate_metrics=candidate_metrics, mode=mode,
-        bandwidth=bandwidth, fixed_grid=fixed_grid, moving_grid=moving_grid,
+        confidence=candidates[chosen][1], candidate=chosen,
+        start="stored pose" if chosen == stored else "phase correlation", candidate_metrics=candidate_metrics,
+        mode=mode, bandwidth=bandwidth, fixed_grid=fixed_grid, moving_grid=moving_grid,
         modalities=(fixed_prepared.modality, moving_prepared.modality), metric=metric,
         refined=refined, overlap=overlap, timings=timings, device=str(torch_device),
         model="learning-free" if network is None else os.fspath(model), fixed_image=fixed_image,
         moving_image=moving_image, resampled=resampled)
+
+
+def stored_pose_confidence(fixed: torch.Tensor, moving: torch.Tensor, network: DPCN | None,
+                           solver: SolverConfig | None) -> float:
+    """The confidence of the stored pose as a start: the mass of the translation-correlation peak of the canonical
+    grids ``(1, 1, N, N, N)`` at the stored orientation (no rotation, no scale), as the solver measures its own
+    candidates' (with a learned model, on its translation features, at its temperature)."""
+    with torch.no_grad():
+        if network is None:
+            config = solver or SolverConfig()
+            estimate = phase_translation(fixed[:, 0], moving[:, 0], StageTemperatures().translation, dim=3,
+                                         taper=config.taper, refine=False, upsample=config.upsample)
+        else:
+            estimate = network.translation_peak(fixed, moving)
+    return float(estimate.peak.mass[0])
 
 
 def field_of_view_overlap(fixed_foreground: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform, *,
@@ -497,7 +533,8 @@ def refine_candidates(pyramid: list[tuple[sitk.Image, sitk.Image]], candidates: 
 
     Args:
         pyramid: :func:`image_pyramid` of the pair.
-        candidates: global estimates, fixed to moving, the solver's own choice first.
+        candidates: the starts, fixed to moving: the solver's global estimates, its own choice first, and the stored
+            pose last when it is one (:attr:`Refinement.stored_start`).
 
     Returns:
         ``(index, transform, metrics)``: the winner's index in ``candidates``, its refined transform (``None`` when no

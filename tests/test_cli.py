@@ -17,7 +17,7 @@ from dpcn_med import __version__
 from dpcn_med.cli import OUTPUT_NAMES, main
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.preprocess import foreground_box
-from tests.test_register import mni_2mm
+from tests.test_register import coronal_slab, mni_2mm
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +72,7 @@ class TestRegister:
         assert report["inputs"]["fixed"]["path"] == str(pair[0])
         assert report["status"] == "ok" and report["confidence"] >= report["min_confidence"]
         assert report["dpc"]["type"] == report["final"]["type"] == "VersorRigid3DTransform"
+        assert report["start"] == "phase correlation"  # the copy was moved far from the stored pose
         assert report["mattes_mutual_information"]["refined"] <= report["mattes_mutual_information"]["dpc"]
         assert report["version"] == __version__
 
@@ -110,6 +111,16 @@ class TestRegister:
         assert code == 0 and report["inputs"]["fixed_mask"] == str(mask)
         transform = sitk.ReadTransform(str(tmp_path / "o" / "transform.tfm"))
         assert target_registration_error(transform, pair[2], foreground_corners(mni_2mm())) < 1.0
+
+    def test_a_pair_aligned_as_stored_says_so(self, tmp_path, capsys):
+        slab, whole = coronal_slab()
+        sitk.WriteImage(slab, str(tmp_path / "slab.nii.gz"))
+        sitk.WriteImage(whole, str(tmp_path / "whole.nii.gz"))
+        assert main(["register", str(tmp_path / "slab.nii.gz"), str(tmp_path / "whole.nii.gz"), "-o",
+                     str(tmp_path / "o"), "--no-overview", "--no-resampled"]) == 0
+        assert "refined from the stored pose" in capsys.readouterr().out
+        report = json.loads((tmp_path / "o" / "report.json").read_text())
+        assert report["start"] == "stored pose" and report["final"]["rotation_degrees"] < 0.5
 
     def test_python_dash_m_and_version(self):
         done = subprocess.run([sys.executable, "-m", "dpcn_med", "--version"], capture_output=True, text=True,

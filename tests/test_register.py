@@ -10,13 +10,22 @@ import sys
 import numpy as np
 import pytest
 import SimpleITK as sitk
+import torch
 
 from dpcn_med.benchmark import CASES, rotation_in_bin
 from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.geometry import homogeneous_matrix
 from dpcn_med.models import DPCN, ModelConfig, save_model
-from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
+from dpcn_med.preprocess import (
+    Preprocessing,
+    foreground_box,
+    foreground_mask,
+    pair_grids,
+    prepare,
+    resample_to_grid,
+    to_tensor,
+)
 from dpcn_med.register import (
     Refinement,
     RegistrationResult,
@@ -25,6 +34,7 @@ from dpcn_med.register import (
     mattes_metric,
     register,
     resolve_device,
+    stored_pose_confidence,
 )
 from dpcn_med.samples import mni152_t1
 from dpcn_med.solver import SolverConfig
@@ -123,11 +133,12 @@ class TestCandidates:
         corners = foreground_corners(fixed)
         truth = rotation_in_bin(np.random.default_rng(1), 0, 180, foreground_box(fixed)[0], 40)
         moving = moved_copy(whole, truth)
-        alone = register(fixed, moving, refinement=Refinement(starts=1))
+        alone = register(fixed, moving, refinement=Refinement(starts=1, stored_start=False))
         assert alone.candidate == 0 and len(alone.candidate_metrics) == 1
         assert target_registration_error(alone.fixed_to_moving, truth, corners) > 100
         result = register(fixed, moving)
         assert result.candidate > 0 and len(result.candidate_metrics) > result.candidate
+        assert result.start == "phase correlation"
         assert target_registration_error(result.fixed_to_moving, truth, corners) < 1.0
         assert result.metric["refined"] < alone.metric["refined"]
         assert result.to_dict()["candidate"] == result.candidate
@@ -143,6 +154,56 @@ class TestCandidates:
         assert mattes_metric(fixed, moving, transform, (mask, None)) == pytest.approx(full, rel=1e-9)
 
 
+def coronal_slab() -> tuple[sitk.Image, sitk.Image]:
+    """A slab 18 mm thick (a tenth of the 2 mm MNI head from front to back) cut out of the whole head, and the head:
+    the pair is aligned as stored, but the slab's cut faces dominate its spectrum and phase correlation misses."""
+    whole = mni_2mm()
+    stats = sitk.LabelShapeStatisticsImageFilter()
+    stats.Execute(foreground_mask(whole))
+    box = stats.GetBoundingBox(1)
+    length = box[4] // 10
+    start = box[1] + (box[4] - length) // 2
+    return sitk.RegionOfInterest(whole, [whole.GetSize()[0], length, whole.GetSize()[2]], [0, start, 0]), whole
+
+
+class TestStoredStart:
+    """The stored pose (identity) as one more start of the refinement (:attr:`Refinement.stored_start`)."""
+
+    def test_inputs_aligned_as_stored_stay_aligned(self):
+        slab, whole = coronal_slab()
+        corners, identity = foreground_corners(slab), sitk.Transform(3, sitk.sitkIdentity)
+        without = register(slab, whole, refinement=Refinement(stored_start=False))
+        assert target_registration_error(without.fixed_to_moving, identity, corners) > 20
+        result = register(slab, whole)
+        assert target_registration_error(result.fixed_to_moving, identity, corners) < 0.5
+        assert result.start == "stored pose" and result.candidate == len(result.candidate_metrics) - 1
+        assert len(result.candidate_metrics) == len(without.candidate_metrics) + 1
+        np.testing.assert_allclose(homogeneous_matrix(result.dpc_transform), np.eye(4))
+        assert result.confidence > 0.5  # the slab's translation correlation with its head, as stored, is sharp
+        assert result.to_dict()["start"] == "stored pose"
+
+    def test_dropped_where_the_stored_frames_do_not_overlap(self):
+        fixed = mni_2mm()
+        truth = sitk.Euler3DTransform((0.0, 0.0, 0.0), 0.0, 0.0, 0.0, (0.0, 0.0, 1000.0))  # unrelated scanner frames
+        result = register(fixed, moved_copy(fixed, truth))
+        assert result.metric["stored"] is None and result.candidate_metrics[-1] is None
+        assert result.start == "phase correlation"
+        assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 1.0
+
+    def test_confidence_on_a_learned_model_s_features(self, tmp_path):
+        """An untrained model's UNets are at zero gain (their features are the grids): its stored-pose confidence is
+        the learning-free one; against noise there is no translation peak to be sure of."""
+        model = DPCN(ModelConfig(bandwidth=16, channels=(4, 8, 16), residual_units=0)).eval()
+        prepared = prepare(mni_2mm())
+        grid = pair_grids(prepared, prepared, 32, Preprocessing())[0]
+        volume = to_tensor(resample_to_grid(prepared.image, grid))
+        noise = torch.rand(volume.shape, generator=torch.Generator().manual_seed(0))
+        aligned = stored_pose_confidence(volume, volume, None, None)
+        assert aligned > 0.9
+        assert stored_pose_confidence(volume, volume, model, None) == pytest.approx(aligned, rel=1e-4)
+        assert stored_pose_confidence(volume, noise, None, None) < 0.01
+
+
 class TestLearnedModel:
     def test_a_model_file_registers_and_is_reported(self, tmp_path):
         """An untrained model is the learning-free solver with its UNets at zero gain: through a file it must give
@@ -151,7 +212,8 @@ class TestLearnedModel:
         fixed = mni_2mm()
         truth = random_similarity(np.random.default_rng(4), foreground_box(fixed)[0])
         moving = moved_copy(fixed, truth)
-        learned = register(fixed, moving, model=tmp_path / "untrained.safetensors", bandwidth=16)
+        learned = register(fixed, moving, model=tmp_path / "untrained.safetensors", bandwidth=16,
+                           refinement=Refinement(stored_start=False))
         assert learned.model == str(tmp_path / "untrained.safetensors") and learned.to_dict()["model"] == learned.model
         assert target_registration_error(learned.fixed_to_moving, truth, foreground_corners(fixed)) < 1.0
         assert len(learned.candidate_metrics) > 1  # the model's runner-ups reach the refinement too
@@ -206,9 +268,10 @@ class TestSolverSettings:
         fixed = mni_2mm()
         truth = random_similarity(np.random.default_rng(4), foreground_box(fixed)[0])
         moving = moved_copy(fixed, truth)
-        single = register(fixed, moving, solver=SolverConfig(peaks=1, half_turns=False, extra_sphere_bands=()))
+        single = register(fixed, moving, solver=SolverConfig(peaks=1, half_turns=False, extra_sphere_bands=()),
+                          refinement=Refinement(stored_start=False))
         assert len(single.candidate_metrics) == 1
-        assert len(register(fixed, moving).candidate_metrics) > 1
+        assert len(register(fixed, moving, refinement=Refinement(stored_start=False)).candidate_metrics) > 1
 
     def test_refused_with_a_learned_model(self, tmp_path):
         save_model(DPCN(ModelConfig(bandwidth=16, channels=(4, 8, 16), residual_units=0)), tmp_path / "untrained")

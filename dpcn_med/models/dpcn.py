@@ -191,14 +191,22 @@ class DPCN(nn.Module):
             compensation = self._noisy(target, generator, rigid=mode == "rigid").to(fixed.dtype)
         else:
             compensation = (stage.scale[:, None, None] * stage.rotation).detach()
-        compensated = warp(moving, compensation)
-        estimate = phase_translation(self.translation_fixed(fixed)[:, 0], self.translation_moving(compensated)[:, 0],
-                                     temperatures.translation, dim=3, taper=self.solver.taper, refine=refine,
-                                     upsample=self.solver.upsample)
+        estimate = self.translation_peak(fixed, warp(moving, compensation), temperatures.translation)
         translation = (compensation @ estimate.shift[..., None])[..., 0]
         return DPCNOutput(rotation=stage.rotation, scale=stage.scale, translation=translation,
                           confidence=estimate.peak.mass, stage=stage, translation_estimate=estimate,
                           compensation=compensation)
+
+    def translation_peak(self, fixed: Tensor, moving: Tensor, temperature: Tensor | None = None
+                         ) -> TranslationEstimate:
+        """The translation stage: phase correlation of the translation features of ``fixed`` and ``moving``
+        ``(B, 1, 2B, 2B, 2B)``, ``moving`` already compensated for rotation and scale (or as stored). The
+        arg-max is refined in eval mode, a soft arg-max in training mode; ``temperature`` defaults to the learned
+        one."""
+        temperature = self.temperatures().translation if temperature is None else temperature
+        return phase_translation(self.translation_fixed(fixed)[:, 0], self.translation_moving(moving)[:, 0],
+                                 temperature, dim=3, taper=self.solver.taper, refine=not self.training,
+                                 upsample=self.solver.upsample)
 
     def _noisy(self, target: PoseTarget, generator: torch.Generator | None, rigid: bool) -> Tensor:
         """``(B, 3, 3)``: the true ``scale * rotation``, turned and scaled a little at random."""
