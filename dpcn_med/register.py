@@ -330,9 +330,9 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
                         float(alternatives.confidence[0, k]))
                        for k in range(alternatives.score.shape[1]) if alternatives.score[0, k] > float("-inf")]
     stored = len(candidates) if refine and refinement.stored_start else None  # the stored pose's index
-    if stored is not None:
+    if stored is not None:  # its confidence is measured only if it wins (with a model, two UNet passes)
         candidates.append((similarity_transform(np.eye(4), np.asarray(fixed_grid.centre), rigid=mode == "rigid"),
-                           stored_pose_confidence(fixed_tensor, moving_tensor, network, solver)))
+                           None))
 
     metric: dict[str, float | None] = {"stored": None, "dpc": None, "refined": None}
     chosen, candidate_metrics = 0, []
@@ -367,10 +367,13 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         report("resampling", 0.9)
         resampled = resample_moving(fixed_image, moving_image, final)
         timings["resample"] = time.perf_counter() - start
+    confidence = candidates[chosen][1]
+    if chosen == stored:
+        confidence = stored_pose_confidence(fixed_tensor, moving_tensor, network, solver)
     report("done", 1.0)
     return RegistrationResult(
         fixed_to_moving=final, moving_to_fixed=final.GetInverse(), dpc_transform=candidates[chosen][0],
-        confidence=candidates[chosen][1], candidate=chosen,
+        confidence=confidence, candidate=chosen,
         start="stored pose" if chosen == stored else "phase correlation", candidate_metrics=candidate_metrics,
         mode=mode, bandwidth=bandwidth, fixed_grid=fixed_grid, moving_grid=moving_grid,
         modalities=(fixed_prepared.modality, moving_prepared.modality), metric=metric,
