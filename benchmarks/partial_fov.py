@@ -26,6 +26,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -83,6 +84,16 @@ def slab(image: sitk.Image, fraction: float, rng: np.random.Generator) -> sitk.I
     return sitk.RegionOfInterest(image, size, index)
 
 
+def cell_poses(fixed_whole: sitk.Image, overlap: float, trials: int, seed: int
+               ) -> Iterator[tuple[int, sitk.Image, sitk.Similarity3DTransform]]:
+    """The poses of one cell, ``(trial, fixed slab, true fixed_to_moving)``, each following from ``seed`` and
+    ``overlap`` alone (whatever runs on them)."""
+    rng = np.random.default_rng([seed, int(overlap * 100)])
+    for trial in range(trials):
+        fixed = slab(fixed_whole, overlap, rng)
+        yield trial, fixed, random_similarity(rng, foreground_box(fixed)[0], max_shift_mm=40.0)
+
+
 ROW_FIELDS = {"case": str, "overlap": float, "trial": int, "method": str, "tre_mm": float, "seconds": float,
               "label": str}
 """Columns of the per-registration CSV beside the table, and their types (:func:`run`'s rows and their labels)."""
@@ -98,10 +109,7 @@ def run(case: str, overlaps: list[float], trials: int, seed: int, methods: list[
     folder = Path(tempfile.mkdtemp(prefix="dpcn-med-partial-fov-"))
     try:
         for overlap in overlaps:
-            rng = np.random.default_rng([seed, int(overlap * 100)])
-            for trial in range(trials):
-                fixed = slab(fixed_whole, overlap, rng)
-                truth = random_similarity(rng, foreground_box(fixed)[0], max_shift_mm=40.0)
+            for trial, fixed, truth in cell_poses(fixed_whole, overlap, trials, seed):
                 moving = moved_copy(moving_whole, truth)
                 corners = foreground_corners(fixed)
                 for method in methods:
