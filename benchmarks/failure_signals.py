@@ -8,8 +8,8 @@ more) from successes:
 - ``confidence``: :attr:`dpcn_med.register.RegistrationResult.confidence`;
 - ``overlap``: the share of the fixed foreground mapped inside the moving field of view;
 - ``mattes_mi``: Mattes mutual information at the result (SimpleITK's sign: lower is better);
-- ``nmi``: Studholme's normalised mutual information at the result, on the fixed foreground (in ``[1, 2]``; it does
-  not grow with the overlap's size, unlike mutual information);
+- ``nmi``: Studholme's normalised mutual information at the result, on the fixed foreground (in ``[1, 2]``, less
+  sensitive to the size of the overlap than mutual information);
 - ``runner_up_gap``: the best other start's metric after the coarsest refinement level minus the winner's (how
   clearly the winning start won; negative where it won only at a finer level).
 
@@ -119,7 +119,7 @@ def separation(rows: list[dict]) -> str:
     flagged = [sum(r["confidence"] < MIN_CONFIDENCE for r in group) for group in (failure, success)]
     lines += ["", f"At the command line's `--min-confidence` ({MIN_CONFIDENCE:g}, exit code 3): {flagged[0]} of "
               f"{len(failure)} failures flagged, and {flagged[1]} of {len(success)} successes."]
-    lines += ["", "Per pair (every signal's threshold depends on the pair's contrasts and content):", "",
+    lines += ["", "Per pair (the levels are each pair's own):", "",
               "| pair | overlaps | registered | median `confidence`, successes / failures | median `mattes_mi`, "
               "successes / failures |", "|---|---|---|---|---|"]
     for case in dict.fromkeys(r["case"] for r in rows):
