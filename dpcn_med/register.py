@@ -57,8 +57,9 @@ class Refinement:
             sampled when the user gives no fixed mask.
         starts: global candidates refined: the solver's choice and up to ``starts - 1`` runner-ups (1: its choice
             only). Every one runs the coarsest pyramid level (:func:`refine_candidates`), about 0.1 s each. Two sphere
-            bands leave 4-15 plausible candidates on a head, and across modalities the translation peak that ranks
-            them is low for all: on 4 of 60 MNI pseudo-CT poses the right one ranked 9th to 13th, so all of them run.
+            bands leave 2-16 plausible candidates on the MNI heads, and across modalities the translation peak that
+            ranks them is low for all: on 4 of 60 MNI pseudo-CT poses the right one ranked 9th to 13th, so all of
+            them run.
         survivors: how many of them go on to each next level, by their metric (the last value holds for the rest).
         stored_start: the stored pose (identity) is one more start, after the solver's candidates: inputs already
             roughly aligned (one scanner frame, or aligned by hand) stay aligned where phase correlation misses (a
