@@ -9,7 +9,8 @@ Methods (``METHODS``): dpcn_med learning-free with and without its refinement; S
 (the same multi-resolution optimiser dpcn_med refines with) started from ``CenteredTransformInitializer`` GEOMETRY
 or MOMENTS, or from an exhaustive search over Euler angles as in SimpleITK's registration-initialisation notebook;
 ANTs ``Rigid``, alone and after its multi-start ``affine_initializer``; elastix's default rigid map. ANTs and elastix
-come with the ``benchmark`` extra (``pip install 'dpcn_med[benchmark]'``); without them their rows are left out.
+come with the ``benchmark`` extra (``pip install 'dpcn_med[benchmark]'``); a run that asks for them without it is
+refused, and the command line's default methods leave them out.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ class BenchmarkConfig:
 
     Attributes:
         cases: keys of :data:`CASES`.
-        methods: keys of :data:`METHODS`.
+        methods: keys of :data:`METHODS`; every installed one when empty.
         bins: initial-rotation bins in degrees, ``(low, high)``.
         trials: pairs per case and bin.
         max_shift_mm: translation length up to this.
@@ -65,8 +66,8 @@ class BenchmarkConfig:
 
 QUICK = BenchmarkConfig(methods=("dpcn", "dpcn-global", "sitk-geometry", "sitk-moments", "sitk-exhaustive",
                                  "ants-rigid", "elastix-rigid"))
-"""A few minutes on a CPU: the built-in volumes, one pose per bin, every method but ANTs' multi-start (25 s a
-pair); methods whose packages are missing are left out."""
+"""A few minutes on a CPU: the built-in volumes, one pose per bin, every method but ANTs' multi-start (30 s
+a pose on the MNI pairs)."""
 FULL = BenchmarkConfig(cases=("mni", "mni-pseudo-ct", "seg3d", "seg3d-pseudo-ct", "t1-flair"), trials=10)
 """The documented run (docs/benchmarks.md): the shared real volumes too, ten poses per bin."""
 
@@ -258,21 +259,38 @@ def status_mib(field: str) -> float:
 
 
 def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | None = None,
-                  showcase: dict | None = None) -> list[dict]:
+                  showcase: dict | None = None, *, skip_missing: bool = False) -> list[dict]:
     """Every method on every pair: one row per (case, bin, trial, method) with TRE (mm), seconds and peak MiB.
 
     ``showcase``, when given, receives one dpcn registration to render (:func:`write_outputs`): the first
     heterogeneous case's (else the first case's) first pose in the largest-rotation bin, as ``case``, ``bin``,
-    ``fixed``, ``moving`` and ``estimate``.
+    ``fixed``, ``moving`` and ``estimate``. ``skip_missing`` leaves out (and reports through ``progress``) the methods
+    whose packages are not installed, rather than refusing them.
+
+    Raises:
+        InputError: an unknown or repeated case, method or bin; a method whose package is missing; no case; fewer
+            than one trial.
     """
     installed = available_methods()
-    methods = tuple(m for m in config.methods if m in installed or m not in METHODS) or installed
+    methods = config.methods or installed
     bins = [f"{low}-{high}" for low, high in config.bins]
     for kind, names, known in (("case", config.cases, CASES), ("method", methods, METHODS),
                                ("bin", config.run_bins, bins)):
         unknown = [name for name in names if name not in known]
         if unknown:
             raise InputError(f"unknown {kind} {', '.join(unknown)}; use one of {', '.join(known)}")
+        repeated = [name for name in dict.fromkeys(names) if names.count(name) > 1]
+        if repeated:
+            raise InputError(f"{kind} {', '.join(repeated)} given more than once")
+    if not config.cases or config.trials < 1:
+        raise InputError(f"nothing to register: {len(config.cases)} case(s), {config.trials} trial(s) per bin; give at "
+                         "least one of each")
+    missing = [f"{name} needs {METHODS[name][1]}" for name in methods if name not in installed]
+    if missing and not skip_missing:
+        raise InputError(f"{'; '.join(missing)} (pip install 'dpcn_med[benchmark]')")
+    if missing and progress is not None:
+        progress(f"left out: {'; '.join(missing)} (pip install 'dpcn_med[benchmark]')")
+    methods = tuple(name for name in methods if name in installed)
     shown = next((case for case in config.cases if not CASES[case][1]), config.cases[0])
     rows = []
     folder = Path(tempfile.mkdtemp(prefix="dpcn-med-benchmark-"))
@@ -403,9 +421,11 @@ def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
     """The rows of earlier runs' ``results.csv`` (say, one run per core, split by case or bin), in the folders' order.
 
     Raises:
-        InputError: a missing or malformed file (:func:`dpcn_med.io.read_csv`), an unknown case or method, or a
-            registration (case, bin, trial, method) found twice.
+        InputError: a missing or malformed file (:func:`dpcn_med.io.read_csv`), an unknown case, method or bin, a
+            negative trial, a TRE or time that is negative or not finite, or a registration (case, bin, trial, method)
+            found twice.
     """
+    bins = [f"{low}-{high}" for low, high in BenchmarkConfig().bins]
     rows, seen = [], {}
     for folder in folders:
         path = Path(folder) / "results.csv"
@@ -415,6 +435,11 @@ def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
         for line, row in enumerate(found, start=2):
             if row["case"] not in CASES or row["method"] not in METHODS:
                 raise InputError(f"{path}: line {line}: unknown case or method {row['case']!r}, {row['method']!r}")
+            if row["bin"] not in bins:
+                raise InputError(f"{path}: line {line}: unknown bin {row['bin']!r}; use one of {', '.join(bins)}")
+            for field in ("trial", "tre_mm", "seconds"):  # peak_mib may be NaN (no /proc) or slightly negative
+                if not (math.isfinite(row[field]) and row[field] >= 0):
+                    raise InputError(f"{path}: line {line}: {field} {row[field]}; expected a finite number >= 0")
             key = (row["case"], row["bin"], row["trial"], row["method"])
             if key in seen:
                 raise InputError(f"{path}: line {line}: {', '.join(map(str, key))} is also in {seen[key]}")

@@ -104,7 +104,7 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--cases", nargs="+", help="override the mode's cases")
     bench.add_argument("--methods", nargs="+", help="override the methods (default: every installed one)")
     bench.add_argument("--trials", type=int, help="poses per case and bin")
-    bench.add_argument("--seed", type=int, default=0)
+    bench.add_argument("--seed", type=int, help="of the poses (default 0)")
     bench.add_argument("--bins", nargs="+", metavar="BIN",
                        help="register only these rotation bins, named as in results.csv (90-120); the poses are "
                        "those of a run of every bin, so runs split by bin over several cores can be combined")
@@ -395,7 +395,14 @@ def _benchmark(args: argparse.Namespace) -> int:
                "run_bins": tuple(args.bins) if args.bins else None}
     config = replace(config, **{k: v for k, v in changes.items() if v is not None})
     showcase: dict = {}
+    _check_output_folder(args.output)
     if args.combine:
+        ignored = [flag for flag, value in (("--cases", args.cases), ("--methods", args.methods),
+                                            ("--trials", args.trials), ("--seed", args.seed), ("--bins", args.bins))
+                   if value is not None]
+        if ignored:
+            raise InputError(f"--combine registers nothing, so {', '.join(ignored)} cannot apply; give the folders "
+                             "and -o only")
         inputs = {folder.resolve() for folder in args.combine}
         if args.output.resolve() in inputs:
             raise InputError(f"{args.output}: is an input of --combine; choose another output folder")
@@ -403,7 +410,7 @@ def _benchmark(args: argparse.Namespace) -> int:
         config = replace(config, trials=max(row["trial"] for row in rows) + 1)
     else:
         rows = benchmark.run_benchmark(config, progress=lambda line: print(line, file=sys.stderr),
-                                       showcase=showcase)
+                                       showcase=showcase, skip_missing=not args.methods)
     print(benchmark.write_outputs(rows, config, args.output, command=args.command_line, showcase=showcase))
     return EXIT_OK
 

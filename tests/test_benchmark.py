@@ -140,3 +140,47 @@ class TestRunBenchmark:
             assert main(["benchmark", "--combine", str(folder), "-o", str(tmp_path / "out")]) == 2
             assert message in capsys.readouterr().err
         assert not (tmp_path / "twice").exists() and not (tmp_path / "out").exists()
+
+    def test_impossible_rows_are_refused_by_combine(self, tmp_path, capsys):
+        header = ",".join(benchmark.RESULT_FIELDS)
+        good = "mni,0-30,0,dpcn,0.02,2.5,-0.2"  # a peak slightly below zero happens (the RSS reset is approximate)
+        (tmp_path / "good").mkdir()
+        (tmp_path / "good" / "results.csv").write_text(f"{header}\n{good}\n")
+        assert benchmark.combine_results([tmp_path / "good"])[0]["peak_mib"] == -0.2
+        for name, row, message in (("bin", "mni,200-230,0,dpcn,0.02,2.5,100", "line 2: unknown bin '200-230'"),
+                                   ("trial", "mni,0-30,-3,dpcn,0.02,2.5,100", "line 2: trial -3; expected a finite"),
+                                   ("nan", "mni,0-30,0,dpcn,nan,2.5,100", "line 2: tre_mm nan; expected a finite"),
+                                   ("negative", "mni,0-30,0,dpcn,-50,2.5,100", "line 2: tre_mm -50.0; expected"),
+                                   ("time", "mni,0-30,0,dpcn,0.02,inf,100", "line 2: seconds inf; expected")):
+            (tmp_path / name).mkdir()
+            (tmp_path / name / "results.csv").write_text(f"{header}\n{row}\n")
+            assert main(["benchmark", "--combine", str(tmp_path / name), "-o", str(tmp_path / "out")]) == 2
+            assert message in capsys.readouterr().err, name
+        assert main(["benchmark", "--combine", str(tmp_path / "good"), "--cases", "mni", "--bins", "0-30",
+                     "-o", str(tmp_path / "out")]) == 2
+        assert "--combine registers nothing, so --cases, --bins cannot apply" in capsys.readouterr().err
+        assert not (tmp_path / "out").exists()
+
+    def test_what_cannot_run_is_refused_before_any_work(self, tmp_path, capsys, monkeypatch):
+        config = BenchmarkConfig(cases=("mni",), methods=("dpcn-global",), bins=((0, 30),))
+        with pytest.raises(InputError, match="case mni given more than once"):
+            run_benchmark(replace(config, cases=("mni", "mni")))
+        with pytest.raises(InputError, match="method dpcn-global given more than once"):
+            run_benchmark(replace(config, methods=("dpcn-global", "dpcn-global")))
+        with pytest.raises(InputError, match=r"nothing to register: 1 case\(s\), 0 trial\(s\)"):
+            run_benchmark(replace(config, trials=0))
+        assert main(["benchmark", "--cases", "mni", "--trials", "-2", "-o", str(tmp_path / "b")]) == 2
+        assert "nothing to register" in capsys.readouterr().err and not (tmp_path / "b").exists()
+        (tmp_path / "file").write_text("x")
+        assert main(["benchmark", "--cases", "mni", "-o", str(tmp_path / "file")]) == 2
+        assert "exists and is not a folder" in capsys.readouterr().err
+
+        # Without antspyx: asked for by name, refused; among the default methods, left out and said so.
+        monkeypatch.setattr(benchmark, "available_methods", lambda: ("dpcn", "dpcn-global"))
+        with pytest.raises(InputError, match=r"ants-rigid needs antspyx \(pip install 'dpcn_med\[benchmark\]'\)"):
+            run_benchmark(replace(config, methods=("dpcn-global", "ants-rigid")))
+        said: list[str] = []
+        rows = run_benchmark(replace(config, methods=("dpcn-global", "ants-rigid")), progress=said.append,
+                             skip_missing=True)
+        assert [r["method"] for r in rows] == ["dpcn-global"]
+        assert said[0] == "left out: ants-rigid needs antspyx (pip install 'dpcn_med[benchmark]')"
