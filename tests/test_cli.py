@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
+import torch
 
 from dpcn_med import __version__
 from dpcn_med.cli import OUTPUT_NAMES, main
@@ -259,6 +260,21 @@ class TestBadInput:
         code = main(["register", str(pair[0]), str(pair[1]), "--model", str(tmp_path / "ct_mr"), "-o",
                      str(tmp_path / "o")])
         assert code == 2 and "ct_mr.json: not found" in capsys.readouterr().err
+        assert not (tmp_path / "o").exists()
+
+    def test_integer_model_weights(self, pair, tmp_path, capsys):
+        from safetensors.torch import load_file, save_file
+
+        from dpcn_med.models import DPCN, ModelConfig, save_model
+
+        weights, _ = save_model(DPCN(ModelConfig(bandwidth=8, channels=(4, 8, 16), residual_units=0)),
+                                tmp_path / "ct_mr")
+        save_file({k: v.to(torch.int32) for k, v in load_file(str(weights)).items()}, str(weights),
+                  metadata={"format": "dpcn_med.model/1"})
+        code = main(["register", str(pair[0]), str(pair[1]), "--model", str(tmp_path / "ct_mr"), "-o",
+                     str(tmp_path / "o")])
+        assert code == 2 and re.search(r"ct_mr\.safetensors: tensor \S+ is int32, expected floating point",
+                                       capsys.readouterr().err)
         assert not (tmp_path / "o").exists()
 
 

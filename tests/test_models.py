@@ -188,5 +188,33 @@ class TestWeights:
         with pytest.raises(InputError, match="b.safetensors: does not fit b.json"):
             load_model(tmp_path / "b")
 
+    @pytest.mark.parametrize(("edit", "message"), [
+        (lambda d: d.pop("config"), "a\\.json: lacks the 'config' key"),
+        (lambda d: d.update(config=[1, 2]), "a\\.json: 'config' is a list, expected a mapping"),
+        (lambda d: d["config"].update(bandwidth="8"), "a\\.json: .*(model config|bandwidth)"),
+        (lambda d: d["config"].update(learning_rate=0.1), "a\\.json: model config has unknown keys"),
+    ], ids=["no-config", "config-list", "string-bandwidth", "unknown-key"])
+    def test_unusable_configs_name_the_file(self, tmp_path, edit, message):
+        _, config = save_model(DPCN(TINY), tmp_path / "a")
+        description = json.loads(config.read_text())
+        edit(description)
+        config.write_text(json.dumps(description))
+        with pytest.raises(InputError, match=message):
+            load_model(tmp_path / "a")
+
+    @pytest.mark.parametrize(("edit", "message"), [
+        (lambda t: t.to(torch.int32), "is int32, expected floating point"),
+        (lambda t: torch.full_like(t, float("nan")), "holds NaN or Inf values"),
+        (lambda t: t.index_fill(0, torch.tensor([0]), float("inf")), "holds NaN or Inf values"),
+    ], ids=["int32", "nan", "inf"])
+    def test_unusable_weights_name_the_file_and_tensor(self, tmp_path, edit, message):
+        from safetensors.torch import load_file, save_file
+
+        weights, _ = save_model(DPCN(TINY), tmp_path / "a")
+        save_file({k: edit(v) for k, v in load_file(str(weights)).items()}, str(weights),
+                  metadata={"format": "dpcn_med.model/1"})
+        with pytest.raises(InputError, match=f"a\\.safetensors: tensor [\\w.]+ {message}"):
+            load_model(tmp_path / "a")
+
     def test_paths(self):
         assert [p.name for p in model_paths("dir/model.v2.json")] == ["model.v2.safetensors", "model.v2.json"]

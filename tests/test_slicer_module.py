@@ -12,6 +12,7 @@ import importlib.metadata
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -434,20 +435,101 @@ class TestRegistration:
         assert result.confidence == pytest.approx(report["confidence"], rel=1e-3)
 
 
+def turned_oblique_image(degrees: float) -> sitk.Image:
+    """:func:`oblique_image` (float) with its axes turned by ``degrees`` about z."""
+    image = oblique_image(sitk.sitkFloat32)
+    image.SetDirection(rotation_ras(degrees, (0, 0, 1), (0, 0, 0))[:3, :3].ravel().tolist())
+    return image
+
+
+def _drop_report_key(key: str):
+    def edit(folder: Path) -> None:
+        report = json.loads((folder / "report.json").read_text())
+        del report[key]
+        (folder / "report.json").write_text(json.dumps(report))
+    return edit
+
+
+def _overwrite(name: str, content: str):
+    return lambda folder: (folder / name).write_text(content)
+
+
+PAIR_ANGLES = {"fixed": 0, "moving": 40}
+"""Degrees the failure tests' fixed and moving volumes are turned by (:func:`turned_oblique_image`)."""
+
+
+@pytest.fixture(scope="module")
+def complete_result(tmp_path_factory) -> Path:
+    """The folder dpcn-med writes for the failure tests' pair, as the module asks for it (no overview)."""
+    folder = tmp_path_factory.mktemp("complete")
+    for name, angle in PAIR_ANGLES.items():
+        sitk.WriteImage(turned_oblique_image(angle), str(folder / f"{name}.nrrd"))
+    assert dpcn_med_cli(["register", str(folder / "fixed.nrrd"), str(folder / "moving.nrrd"), "-o",
+                         str(folder / "result"), "-q", "--no-overview", *QUICK.arguments()]) in (0, 3)
+    return folder / "result"
+
+
 class TestRegistrationFailures:
     @pytest.fixture
     def pair(self):
         scene = slicer.vtkMRMLScene()
         nodes = []
-        for name, angle in (("fixed", 0), ("moving", 40)):
+        for name, angle in PAIR_ANGLES.items():
             node = slicer.vtkMRMLScalarVolumeNode()
             node.SetName(name)
             scene.AddNode(node)
-            image = oblique_image(sitk.sitkFloat32)
-            image.SetDirection(rotation_ras(angle, (0, 0, 1), (0, 0, 0))[:3, :3].ravel().tolist())
-            image_to_volume(image, node)
+            image_to_volume(turned_oblique_image(angle), node)
             nodes.append(node)
         return scene, nodes[0], nodes[1]
+
+    @staticmethod
+    def child_writing(folder: Path, tmp_path: Path) -> str:
+        """A stand-in for the child Python that exits 0 after copying ``folder`` to the output it is given
+        (arguments: run_registration.py register FIXED MOVING -o OUTPUT ...)."""
+        python = tmp_path / "python-writing-a-prepared-result"
+        python.write_text(f'#!/bin/sh\nexec cp -R "{folder}" "$6"\n')
+        python.chmod(0o755)
+        return str(python)
+
+    def test_a_complete_result_folder_loads(self, pair, tmp_path, complete_result):
+        scene, fixed, moving = pair
+        output_volume = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode")
+        registration = Registration(fixed, moving, QUICK, output_volume=output_volume,
+                                    python=self.child_writing(complete_result, tmp_path), workspace=str(tmp_path))
+        result = registration.finish()
+        report = json.loads((complete_result / "report.json").read_text())
+        assert moving.GetParentTransformNode().GetID() == result.transform.GetID()
+        assert result.confidence == report["confidence"] and result.overlap == report["overlap_fraction"]
+        assert output_volume.GetImageData() is not None
+
+    @pytest.mark.parametrize(("edit", "message"), [
+        (lambda folder: (folder / "moving_resampled.nii.gz").unlink(), "dpcn-med wrote no moving_resampled.nii.gz"),
+        (lambda folder: (folder / "transform.tfm").unlink(), "dpcn-med wrote no transform.tfm"),
+        (lambda folder: (folder / "report.json").unlink(), "dpcn-med wrote no report.json"),
+        (_drop_report_key("overlap_fraction"),
+         "report.json lacks overlap_fraction: the dpcn_med in Slicer's Python is older than this module"),
+        (_drop_report_key("confidence"), "report.json lacks confidence: the dpcn_med in Slicer's Python is older"),
+        (_overwrite("report.json", '{"confidence": "high", "overlap_fraction": 1.0}'),
+         "report.json: confidence is 'high', expected a number"),
+        (_overwrite("report.json", '{"confidence": 0.9,'), "report.json: not a readable JSON file"),
+        (_overwrite("transform.tfm", "not a transform"), "transform.tfm: not a readable linear transform file"),
+        (_overwrite("moving_resampled.nii.gz", "not an image"), "moving_resampled.nii.gz: not a readable volume"),
+    ], ids=["no-resampled", "no-transform", "no-report", "no-overlap", "no-confidence", "text-confidence",
+            "truncated-report", "bad-transform", "bad-resampled"])
+    def test_an_incomplete_result_changes_nothing(self, pair, tmp_path, complete_result, edit, message):
+        """A result folder missing a file or a report value (a dpcn_med older than the module) is refused whole."""
+        scene, fixed, moving = pair
+        folder = tmp_path / "result"
+        shutil.copytree(complete_result, folder)
+        edit(folder)
+        output_volume = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode")
+        nodes = scene.GetNumberOfNodes()
+        registration = Registration(fixed, moving, QUICK, output_volume=output_volume,
+                                    python=self.child_writing(folder, tmp_path), workspace=str(tmp_path))
+        with pytest.raises(RegistrationError, match=message):
+            registration.finish()
+        assert scene.GetNumberOfNodes() == nodes and moving.GetParentTransformNode() is None
+        assert output_volume.GetImageData() is None and not registration.folder.exists()
 
     def test_bad_choices_are_refused_before_anything_runs(self, pair):
         scene, fixed, moving = pair

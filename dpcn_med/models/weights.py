@@ -53,7 +53,8 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
 
     Raises:
         InputNotFoundError: either file is missing.
-        InputError: a pickled checkpoint, a config from something else, or weights that do not fit the config.
+        InputError: a pickled checkpoint, a config from something else or with unusable values, weights that do
+            not fit the config, integer weights where floats belong, or weights holding NaN or Inf.
     """
     if os.fspath(path).lower().endswith(io.PICKLE_SUFFIXES):
         io.read_tensors(path)  # raises its message about pickles
@@ -61,12 +62,31 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
     description = io.read_json(config)
     if not isinstance(description, dict) or description.get("format") != FORMAT:
         raise InputError(f"{config}: not a dpcn_med model config (format {FORMAT!r} expected)")
-    model = DPCN(ModelConfig.from_json(description["config"]))
+    if "config" not in description:
+        raise InputError(f"{config}: lacks the 'config' key (the model's settings); save the model again")
+    settings = description["config"]
+    if not isinstance(settings, dict):
+        raise InputError(f"{config}: 'config' is a {type(settings).__name__}, expected a mapping of the model's "
+                         "settings")
+    try:
+        model = DPCN(ModelConfig.from_json(settings))
+    except InputError as error:
+        raise InputError(f"{config}: {error}") from None
+    except (TypeError, ValueError, KeyError) as error:  # a value of the wrong type reaches arithmetic or MONAI
+        raise InputError(f"{config}: unusable model config ({type(error).__name__}: {error})") from None
     tensors = io.read_tensors(weights)
     expected = unique_state(model)
     if set(tensors) != set(expected) or any(tensors[k].shape != v.shape for k, v in expected.items()):
         missing, unexpected = sorted(set(expected) - set(tensors)), sorted(set(tensors) - set(expected))
         raise InputError(f"{weights}: does not fit {config.name} (missing {missing[:3]}, unexpected {unexpected[:3]}"
                          ", or other shapes)")
+    for name, reference in expected.items():
+        # load_state_dict would cast integers silently and keep NaN: a model that registers wrongly, confidently.
+        tensor = tensors[name]
+        if reference.is_floating_point() and not tensor.is_floating_point():
+            raise InputError(f"{weights}: tensor {name} is {str(tensor.dtype).removeprefix('torch.')}, expected "
+                             "floating point")
+        if tensor.is_floating_point() and not torch.isfinite(tensor).all():
+            raise InputError(f"{weights}: tensor {name} holds NaN or Inf values")
     model.load_state_dict({**model.state_dict(), **tensors})
     return model.to(device).eval()

@@ -117,7 +117,8 @@ class Registration:
         """Wait for the process and load its result into the scene (temporary files deleted either way).
 
         Raises:
-            RegistrationError: the process failed or was cancelled; nothing in the scene changed.
+            RegistrationError: the process failed or was cancelled, or its result is incomplete or unreadable;
+                nothing in the scene changed.
         """
         try:
             self.job.wait()
@@ -130,19 +131,37 @@ class Registration:
             shutil.rmtree(self.folder, ignore_errors=True)
 
     def _load(self, folder: Path) -> Result:
-        report = json.loads((folder / "report.json").read_text())
-        registration = read_transform_file(folder / "transform.tfm", self.scene)
+        """Load dpcn-med's result ``folder`` into the scene, all or nothing: every file is read and checked before
+        the first node changes.
+
+        Raises:
+            RegistrationError: a file is missing or unreadable, or report.json lacks a value this module shows.
+        """
+        report = _read_report(folder / "report.json")
+        path = folder / "transform.tfm"
+        _require(path)
+        try:
+            registration = read_transform_file(path, self.scene)
+        except ValueError as error:
+            raise RegistrationError(str(error)) from None
+        if self.output_volume is not None:
+            path = folder / "moving_resampled.nii.gz"
+            _require(path)
+            try:
+                resampled = sitk.ReadImage(str(path))
+                # First of the scene's changes: it checks the image before it touches the node.
+                image_to_volume(resampled, self.output_volume)
+            except (RuntimeError, ValueError) as error:
+                raise RegistrationError(f"{path.name}: not a readable volume ({error})") from None
+            self.output_volume.SetAndObserveTransformNodeID(None)  # on the fixed grid as shown, in world coordinates
+            if self.output_volume.GetDisplayNode() is None:
+                self.output_volume.CreateDefaultDisplayNodes()
         transform = self.output_transform
         if transform is None:
             transform = self.scene.AddNewNodeByClass("vtkMRMLLinearTransformNode")
             transform.SetName(self.scene.GenerateUniqueName(f"{self.moving.GetName()} to {self.fixed.GetName()}"))
         place_result(registration, self.moving, self.fixed, transform, self.base)
         transform.SetAttribute(CONFIDENCE_ATTRIBUTE, f"{report['confidence']:.6g}")
-        if self.output_volume is not None:
-            image_to_volume(sitk.ReadImage(str(folder / "moving_resampled.nii.gz")), self.output_volume)
-            self.output_volume.SetAndObserveTransformNodeID(None)  # on the fixed grid as shown, in world coordinates
-            if self.output_volume.GetDisplayNode() is None:
-                self.output_volume.CreateDefaultDisplayNodes()
         return Result(transform=transform, volume=self.output_volume, confidence=float(report["confidence"]),
                       low_confidence=self.job.returncode == process.EXIT_LOW_CONFIDENCE,
                       overlap=float(report["overlap_fraction"]), report=report,
@@ -167,6 +186,38 @@ def register_volumes(fixed, moving, options: Options | None = None, *, fixed_mas
         registration.cancel()
         raise
     return registration.finish()
+
+
+OLDER_DPCN_MED = "the dpcn_med in Slicer's Python is older than this module; reinstall it"
+REPORT_NUMBERS = ("confidence", "overlap_fraction")
+"""report.json's values :class:`Result` shows; a dpcn_med too old to write them is refused before the scene changes."""
+
+
+def _require(path: Path) -> None:
+    """Raise :class:`RegistrationError` unless dpcn-med wrote ``path``."""
+    if not path.is_file():
+        raise RegistrationError(f"dpcn-med wrote no {path.name}: {OLDER_DPCN_MED}")
+
+
+def _read_report(path: Path) -> dict:
+    """dpcn-med's report.json, with :data:`REPORT_NUMBERS` checked to be numbers.
+
+    Raises:
+        RegistrationError: the file is missing, unreadable, not a JSON object, or lacks one of the numbers.
+    """
+    _require(path)
+    try:
+        report = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise RegistrationError(f"{path.name}: not a readable JSON file ({error})") from None
+    if not isinstance(report, dict):
+        raise RegistrationError(f"{path.name}: holds a {type(report).__name__}, expected a JSON object")
+    for key in REPORT_NUMBERS:
+        if key not in report:
+            raise RegistrationError(f"{path.name} lacks {key}: {OLDER_DPCN_MED}")
+        if isinstance(report[key], bool) or not isinstance(report[key], (int, float)):
+            raise RegistrationError(f"{path.name}: {key} is {report[key]!r}, expected a number")
+    return report
 
 
 def _check_inputs(fixed, moving, output_transform, output_volume, masks=(None, None)) -> None:
