@@ -90,7 +90,7 @@ def _parser() -> argparse.ArgumentParser:
                                    "training.png.")
     training.add_argument("--config", required=True, type=Path, help="YAML training config")
     training.add_argument("--output", help="output folder (overrides the config's)")
-    training.add_argument("--steps", type=int, help="optimiser steps (overrides the config's)")
+    training.add_argument("--steps", type=_positive_int, help="optimiser steps (overrides the config's)")
     training.add_argument("--device", help="auto, cpu or cuda (overrides the config's)")
     training.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and start afresh")
 
@@ -147,6 +147,16 @@ def _finite_float(text: str) -> float:
     value = float(text)
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
     return value
 
 
@@ -376,6 +386,7 @@ def _train(args: argparse.Namespace) -> int:
     config = replace(config, **{k: v for k, v in changes.items() if v is not None})
     if args.steps is not None:
         config = replace(config, optimiser=replace(config.optimiser, steps=args.steps))
+    _check_output_folder(Path(config.output))
     _, record = train(config)
     if record:  # rank 0 only
         after = record["validation_after"] or {}

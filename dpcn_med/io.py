@@ -751,6 +751,14 @@ def write_tensors(tensors: dict[str, Any], path: str | os.PathLike, *, metadata:
     plain = {name: tensor.detach().cpu().contiguous().clone() for name, tensor in tensors.items()}
     with atomic_output(path) as staged:
         save_file(plain, str(staged), metadata=metadata)
+        os.chmod(staged, 0o666 & ~_umask())  # safetensors creates its files 0600, whatever the umask
+
+
+def _umask() -> int:
+    """The process's umask (which can only be read by setting it)."""
+    mask = os.umask(0o077)
+    os.umask(mask)
+    return mask
 
 
 def read_tensors(path: str | os.PathLike) -> dict[str, Any]:

@@ -669,6 +669,18 @@ class TestTensors:
         assert set(read) == {"a", "b"} and all(torch.equal(read[k], tensors[k]) for k in tensors)
         assert [p.name for p in tmp_path.iterdir()] == ["t.safetensors"]
 
+    def test_permissions_follow_the_umask(self, tmp_path):
+        import torch
+
+        mask = os.umask(0o027)
+        try:
+            io.write_tensors({"a": torch.zeros(2)}, tmp_path / "t.safetensors")
+            io.write_json({}, tmp_path / "t.json")
+        finally:
+            os.umask(mask)
+        modes = [(tmp_path / name).stat().st_mode & 0o777 for name in ("t.safetensors", "t.json")]
+        assert modes == [0o640, 0o640]  # safetensors alone would make its file 0600
+
     def test_refuses_pickles_and_garbage(self, tmp_path):
         import torch
 

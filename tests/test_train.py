@@ -5,6 +5,8 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
+import shutil
 import socket
 from dataclasses import replace
 from pathlib import Path
@@ -19,10 +21,12 @@ from dpcn_med import io
 from dpcn_med.cli import main
 from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.evaluation import moved_copy, random_similarity
+from dpcn_med.io import _umask
 from dpcn_med.models import ModelConfig, load_model
 from dpcn_med.preprocess import foreground_box
 from dpcn_med.samples import mni152_t1
 from dpcn_med.train import DataConfig, OptimiserConfig, TrainConfig, load_config, train
+from dpcn_med.train.data import volume_bank
 from dpcn_med.train.loop import learning_rate
 
 TINY_YAML = """
@@ -66,7 +70,7 @@ class TestConfig:
 
     def test_unknown_keys_name_where_they_are(self, tmp_path):
         (tmp_path / "bad.yaml").write_text("optimiser: {lr: 0.1}\n")
-        with pytest.raises(InputError, match=r"bad\.yaml\.optimiser: unknown keys \['lr'\]"):
+        with pytest.raises(InputError, match=r"bad\.yaml: optimiser: unknown keys \['lr'\]"):
             load_config(tmp_path / "bad.yaml")
         (tmp_path / "model.yaml").write_text("model: {modalities: [ct, pet]}\n")
         with pytest.raises(InputError, match="expected two of ct, mr, us"):
@@ -76,11 +80,142 @@ class TestConfig:
         with pytest.raises(InputNotFoundError, match=r"none\.yaml: not found"):
             load_config(tmp_path / "none.yaml")
         (tmp_path / "broken.yaml").write_text("model: [unclosed\n")
-        with pytest.raises(InputError, match=r"broken\.yaml: not a YAML file"):
+        with pytest.raises(InputError, match=r"broken\.yaml: not a YAML file: line 2, column 1: expected ',' or "
+                           r"']', but got '<stream end>'$"):
             load_config(tmp_path / "broken.yaml")
+
+    def test_values_convert_as_their_fields_say(self, tmp_path):
+        (tmp_path / "types.yaml").write_text("optimiser: {learning_rate: 1, gradient_clip: 0}\n"
+                                             "data: {folder_crop: null, pair: {scale_range: [1, 2]}}\n")
+        config = load_config(tmp_path / "types.yaml")
+        assert config.optimiser.learning_rate == 1.0 and type(config.optimiser.learning_rate) is float
+        assert config.optimiser.gradient_clip == 0.0  # no clipping, as documented
+        assert config.data.folder_crop is None and config.data.pair.scale_range == (1.0, 2.0)
 
     def test_defaults_are_the_dataclasses(self):
         assert TrainConfig().data == DataConfig() and TrainConfig().optimiser == OptimiserConfig()
+
+
+BAD_CONFIGS = {  # (text of TINY_YAML, its replacement, the message's key words)
+    "quoted_resume": ("log_every: 1", "log_every: 1\nresume: 'false'", r"tiny\.yaml: resume: expected true or false, "
+                      r"got 'false' \(a quoted string"),
+    "quoted_amp": ("amp: false", "amp: 'false'", r"optimiser\.amp: expected true or false, got 'false'"),
+    "volumes_not_a_list": ("  volumes: [mni]", "  volumes: mni",
+                           r"data\.volumes: expected a list of strings, got 'mni'"),
+    "volume_not_a_string": ("  volumes: [mni]", "  volumes: [3]", r"data\.volumes\[0\]: expected a string, got 3"),
+    "no_validation_volumes": ("validation_volumes: [mni]", "validation_volumes: []",
+                              r"data\.validation_volumes is empty"),
+    "zero_rate": ("learning_rate: 0.03", "learning_rate: 0", r"optimiser\.learning_rate is 0\.0; expected a finite "
+                  "number > 0"),
+    "nan_rate": ("learning_rate: 0.03", "learning_rate: .nan", r"optimiser\.learning_rate is nan"),
+    "infinite_rate": ("learning_rate: 0.03", "learning_rate: .inf", r"optimiser\.learning_rate is inf"),
+    "exponent_as_string": ("learning_rate: 0.03", "learning_rate: 3e-2", r"optimiser\.learning_rate: expected a "
+                           r"number, got '3e-2' \(YAML reads 1e-3 as a string"),
+    "negative_weight_decay": ("amp: false", "amp: false, weight_decay: -0.1", r"optimiser\.weight_decay is -0\.1"),
+    "nan_gradient_clip": ("amp: false", "amp: false, gradient_clip: .nan", r"optimiser\.gradient_clip is nan; "
+                          "expected a finite norm > 0, or 0 for no clipping"),
+    "negative_gradient_clip": ("amp: false", "amp: false, gradient_clip: -1", r"optimiser\.gradient_clip is -1\.0"),
+    "nan_final_fraction": ("amp: false", "amp: false, final_fraction: .nan", r"optimiser\.final_fraction is nan"),
+    "final_fraction_above_1": ("amp: false", "amp: false, final_fraction: 2", r"optimiser\.final_fraction is 2\.0"),
+    "zero_steps": ("steps: 4", "steps: 0", r"optimiser\.steps is 0; expected at least 1"),
+    "negative_steps": ("steps: 4", "steps: -3", r"optimiser\.steps is -3"),
+    "fractional_batch": ("batch_size: 4", "batch_size: 2.5", r"optimiser\.batch_size: expected an integer, got 2\.5"),
+    "zero_batch": ("batch_size: 4", "batch_size: 0", r"optimiser\.batch_size is 0"),
+    "boolean_steps": ("steps: 4", "steps: true", r"optimiser\.steps: expected an integer, got true"),
+    "negative_warmup": ("warmup_steps: 1", "warmup_steps: -1", r"optimiser\.warmup_steps is -1"),
+    "nan_folder_fraction": ("validation_pairs: 4", "validation_pairs: 4\n  folder_fraction: .nan",
+                            r"data\.folder_fraction is nan; expected a fraction of the steps in \[0, 1\]"),
+    "negative_folder_fraction": ("validation_pairs: 4", "validation_pairs: 4\n  folder_fraction: -1",
+                                 r"data\.folder_fraction is -1\.0"),
+    "short_folder_crop": ("validation_pairs: 4", "validation_pairs: 4\n  folder_crop: [0.5]",
+                          r"data\.folder_crop: expected a list of 2 numbers or null, got \[0\.5\]"),
+    "reversed_folder_crop": ("validation_pairs: 4", "validation_pairs: 4\n  folder_crop: [0.9, 0.5]",
+                             r"data\.folder_crop is \(0\.9, 0\.5\)"),
+    "zero_validation_pairs": ("validation_pairs: 4", "validation_pairs: 0", r"data\.validation_pairs is 0"),
+    "string_validation_seed": ("validation_pairs: 4", "validation_pairs: 4\n  validation_seed: x",
+                               r"data\.validation_seed: expected an integer, got 'x'"),
+    "nan_shift": ("max_shift_fraction: 0.1", "max_shift_fraction: .nan", r"data\.pair\.max_shift_fraction is nan"),
+    "nested_type": ("max_shift_fraction: 0.1", "max_shift_fraction: 0.1, fixed_contrast: {rician: 1}",
+                    r"data\.pair\.fixed_contrast\.rician: expected true or false, got 1"),
+    "zero_log_every": ("log_every: 1", "log_every: 0", r"tiny\.yaml: log_every is 0; expected a number of steps"),
+    "zero_validate_every": ("validate_every: 2", "validate_every: 0", r"tiny\.yaml: validate_every is 0"),
+    "zero_checkpoint_every": ("checkpoint_every: 2", "checkpoint_every: 0", r"tiny\.yaml: checkpoint_every is 0"),
+    "numeric_output": ("output: run", "output: 3", r"tiny\.yaml: output: expected a string, got 3"),
+    "null_output": ("output: run", "output: null", r"tiny\.yaml: output: expected a string, got null"),
+    "fractional_seed": ("seed: 3", "seed: 3.5", r"tiny\.yaml: seed: expected an integer, got 3\.5"),
+    "negative_channels": ("channels: [4, 8, 16]", "channels: [4, -8, 16]", r"model\.channels \(4, -8, 16\): "
+                          "expected positive integers"),
+    "channels_not_a_list": ("channels: [4, 8, 16]", "channels: 4", r"model\.channels: expected a list of integers"),
+    "string_bandwidth": ("bandwidth: 8", "bandwidth: '8'", r"model\.bandwidth: expected an integer, got '8'"),
+    "zero_bandwidth": ("bandwidth: 8", "bandwidth: 0", r"model\.bandwidth 0 is out of range: use an integer in "
+                       r"\[4, 128\]"),
+    "negative_bandwidth": ("bandwidth: 8", "bandwidth: -8", r"model\.bandwidth -8 is out of range"),
+    "huge_bandwidth": ("bandwidth: 8", "bandwidth: 200", r"model\.bandwidth 200 is out of range"),
+    "preprocessing_type": ("modalities: [ct, mr]}", "modalities: [ct, mr], preprocessing: {fill: x}}",
+                           r"model\.preprocessing\.fill: expected a number, got 'x'"),
+    "key_twice": ("log_every: 1", "log_every: 1\nlog_every: 2", r"tiny\.yaml: line 13, column 1: key 'log_every' "
+                  r"appears twice \(also at line 12\)"),
+    "not_yaml": ("log_every: 1", "log_every: [1", r"tiny\.yaml: not a YAML file: line 13, column 15: expected ','"),
+}
+
+
+class TestBadConfig:
+    """Every mistake is exit 2 with one line naming the file and the key, before anything is written."""
+
+    @pytest.mark.parametrize("case", list(BAD_CONFIGS))
+    def test_exit_2_one_line_nothing_written(self, case, tmp_path, capsys):
+        old, new, message = BAD_CONFIGS[case]
+        assert old in TINY_YAML
+        (tmp_path / "tiny.yaml").write_text(TINY_YAML.replace(old, new))
+        assert main(["train", "--config", str(tmp_path / "tiny.yaml")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and re.search(message, err), err
+        assert [p.name for p in tmp_path.iterdir()] == ["tiny.yaml"]
+
+    @pytest.mark.parametrize("steps", ["0", "-5", "two"])
+    def test_steps_option_must_be_positive(self, steps, tmp_path, capsys):
+        (tmp_path / "tiny.yaml").write_text(TINY_YAML)
+        with pytest.raises(SystemExit) as caught:
+            main(["train", "--config", str(tmp_path / "tiny.yaml"), "--steps", steps])
+        assert caught.value.code == 2 and f"--steps: '{steps}' is not" in capsys.readouterr().err
+        assert [p.name for p in tmp_path.iterdir()] == ["tiny.yaml"]
+
+    @pytest.mark.parametrize("device, message", [
+        ("tpu", "device 'tpu' is not valid; use auto, cpu, cuda or cuda:N"),
+        ("gpu", "device 'gpu' is not valid"),
+        ("mps", "device 'mps' is not supported"),
+        pytest.param("cuda", "device 'cuda' asked for, but this torch build sees no CUDA GPU",
+                     marks=pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")),
+    ])
+    @pytest.mark.parametrize("where", ["config", "option"])
+    def test_unknown_or_absent_device(self, device, message, where, tmp_path, capsys):
+        text = TINY_YAML.replace("device: cpu", f"device: {device}") if where == "config" else TINY_YAML
+        (tmp_path / "tiny.yaml").write_text(text)
+        option = ["--device", device] if where == "option" else []
+        assert main(["train", "--config", str(tmp_path / "tiny.yaml"), *option]) == 2
+        assert message in capsys.readouterr().err
+        assert [p.name for p in tmp_path.iterdir()] == ["tiny.yaml"]
+
+    @pytest.mark.parametrize("where", ["under_a_file", "over_a_file", "read_only"])
+    def test_unusable_output_folder_is_refused_before_any_work(self, where, tmp_path, capsys, monkeypatch):
+        if where == "read_only" and os.geteuid() == 0:
+            pytest.skip("root writes into read-only folders")
+        import dpcn_med.train
+
+        monkeypatch.setattr(dpcn_med.train, "train", lambda *args, **kwargs: pytest.fail("trained"))
+        (tmp_path / "tiny.yaml").write_text(TINY_YAML)
+        (tmp_path / "notes.txt").write_text("x")
+        (tmp_path / "locked").mkdir(mode=0o555)
+        output = {"under_a_file": tmp_path / "notes.txt" / "run", "over_a_file": tmp_path / "notes.txt",
+                  "read_only": tmp_path / "locked" / "run"}[where]
+        assert main(["train", "--config", str(tmp_path / "tiny.yaml"), "--output", str(output)]) == 2
+        assert re.search(r"(notes\.txt|locked).*(is a file|is not a folder|no write permission)",
+                         capsys.readouterr().err)
+        assert (tmp_path / "notes.txt").read_text() == "x" and not list((tmp_path / "locked").iterdir())
+
+    def test_empty_volume_list_is_named(self):
+        with pytest.raises(InputError, match=r"data\.validation_volumes: no volumes"):
+            volume_bank((), 16, key="data.validation_volumes")
 
 
 class TestLearningRate:
@@ -147,10 +282,79 @@ class TestTrain:
         assert "trained 2 steps" in capsys.readouterr().out
         assert (tmp_path / "cli" / "model.safetensors").is_file()
 
-    def test_bad_volume_is_named(self, tmp_path, capsys):
-        (tmp_path / "bad.yaml").write_text(TINY_YAML.replace("volumes: [mni]", "volumes: [missing.nii.gz]"))
+    @pytest.mark.parametrize("key", ["volumes", "validation_volumes"])
+    def test_bad_volume_is_named_and_nothing_written(self, key, tmp_path, capsys):
+        (tmp_path / "bad.yaml").write_text(TINY_YAML.replace(f"  {key}: [mni]", f"  {key}: [missing.nii.gz]"))
         assert main(["train", "--config", str(tmp_path / "bad.yaml")]) == 2
         assert "missing.nii.gz: not found" in capsys.readouterr().err
+        assert not (tmp_path / "run").exists()  # the output folder is made once the inputs are read
+
+
+@pytest.fixture(scope="module")
+def checkpointed(tmp_path_factory) -> Path:
+    """A folder with ``tiny.yaml`` and the one-step run it made in ``run/`` (checkpoint and model)."""
+    folder = tmp_path_factory.mktemp("checkpointed")
+    (folder / "tiny.yaml").write_text(TINY_YAML)
+    assert main(["train", "--config", str(folder / "tiny.yaml"), "--steps", "1"]) == 0
+    return folder
+
+
+def _damage_json(run: Path, change: dict) -> None:
+    saved = json.loads((run / "checkpoint.json").read_text())
+    (run / "checkpoint.json").write_text(json.dumps({**saved, **change} if change else {}))
+
+
+def _damage_tensors(run: Path, drop: bool) -> None:
+    tensors = io.read_tensors(run / "checkpoint.safetensors")
+    name = next(name for name in tensors if name.startswith("model.") and tensors[name].dim() > 1)
+    tensors[name] = tensors[name][:1]
+    if drop:
+        del tensors[name]
+    io.write_tensors(tensors, run / "checkpoint.safetensors")
+
+
+class TestResume:
+    def test_tensor_files_follow_the_umask(self, checkpointed):
+        run = checkpointed / "run"
+        for name in ("checkpoint", "model"):
+            mode = (run / f"{name}.json").stat().st_mode & 0o777
+            assert (run / f"{name}.safetensors").stat().st_mode & 0o777 == mode == 0o666 & ~_umask()
+
+    @pytest.mark.parametrize("old, new, difference", [
+        ("bandwidth: 8", "bandwidth: 16", "model.bandwidth 8, this config has 16"),
+        ("  volumes: [mni]", "  volumes: [mni, mni-head]", 'data.volumes ["mni"], this config has ["mni", '
+         '"mni-head"]'),
+        ("amp: false", "amp: false, weight_decay: 0.5", "optimiser.weight_decay 0.0001, this config has 0.5"),
+    ])
+    def test_checkpoint_of_another_config_is_refused(self, old, new, difference, checkpointed, tmp_path, capsys):
+        folder = shutil.copytree(checkpointed, tmp_path / "copy")
+        (folder / "tiny.yaml").write_text(TINY_YAML.replace(old, new, 1))
+        before = {path.name: path.read_bytes() for path in (folder / "run").iterdir()}
+        assert main(["train", "--config", str(folder / "tiny.yaml"), "--steps", "8"]) == 2
+        assert capsys.readouterr().err == (
+            f"dpcn-med: error: {folder / 'run' / 'checkpoint.json'}: was made with {difference}; train into another "
+            "output folder, or start afresh over this one with --restart (resume: false)\n")
+        assert {path.name: path.read_bytes() for path in (folder / "run").iterdir()} == before
+
+    @pytest.mark.parametrize("damage, name, message", [
+        (lambda run: _damage_json(run, {}), "checkpoint.json", r"not a dpcn_med checkpoint \(no valid step, "
+         r"param_groups, optimiser_scalars, config, rows\)"),
+        (lambda run: _damage_json(run, {"step": 9}), "checkpoint.json", "is at step 9, past this config's "
+         "optimiser.steps 4; ask for more steps"),
+        (lambda run: _damage_json(run, {"param_groups": []}), "checkpoint.json", "its optimiser state does not fit "
+         "this model"),
+        (lambda run: _damage_tensors(run, drop=False), "checkpoint.safetensors", r"does not fit this model \(1 "
+         "tensors missing, unexpected or of another shape, such as "),
+        (lambda run: _damage_tensors(run, drop=True), "checkpoint.safetensors", r"does not fit this model \(1 "),
+    ], ids=["empty", "past_the_steps", "optimiser", "reshaped", "missing"])
+    def test_damaged_checkpoint_is_named(self, damage, name, message, checkpointed, tmp_path, capsys):
+        folder = shutil.copytree(checkpointed, tmp_path / "copy")
+        damage(folder / "run")
+        assert main(["train", "--config", str(folder / "tiny.yaml")]) == 2
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and len(err) < 400, err
+        assert re.search(re.escape(f"{folder / 'run' / name}: ") + message, err), err
+
 
 
 def _free_port() -> int:

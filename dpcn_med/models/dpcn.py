@@ -22,7 +22,7 @@ from dpcn_med.preprocess import Preprocessing
 from dpcn_med.solver import LossWeights, PoseTarget, SolverConfig, SolveResult, StageTemperatures, Temperatures, solve
 from dpcn_med.solver import pose_loss as solver_pose_loss
 from dpcn_med.solver.translation import TranslationEstimate, phase_translation
-from dpcn_med.solver.validation import check_mode
+from dpcn_med.solver.validation import MAX_BANDWIDTH, check_bandwidth, check_mode
 
 MODALITIES = ("ct", "mr", "us")
 PER_CALL_SOLVER_FIELDS = ("bandwidth", "refine", "alternatives", "profile")
@@ -86,7 +86,12 @@ class ModelConfig:
     version: str = __version__
 
     def __post_init__(self) -> None:
+        check_bandwidth(self.bandwidth, 2 * MAX_BANDWIDTH)
         check_mode(self.mode)
+        if not all(isinstance(c, int) and c >= 1 for c in self.channels):
+            raise InputError(f"channels {self.channels!r}: expected positive integers")
+        if self.residual_units < 0:
+            raise InputError(f"residual_units is {self.residual_units}; expected 0 or more")
         if any(m not in MODALITIES for m in self.modalities) or len(self.modalities) != 2:
             raise InputError(f"modalities {self.modalities!r}: expected two of {', '.join(MODALITIES)}")
         if len(self.channels) < 2 or (2 * self.bandwidth) % 2 ** (len(self.channels) - 1):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -69,8 +70,8 @@ class PairConfig:
             raise InputError(f"scale_range is {tuple(self.scale_range)}; expected (low, high) with 0 < low <= high")
         if not 0 <= self.crop_probability <= 1:
             raise InputError(f"crop_probability is {self.crop_probability}; expected a probability in [0, 1]")
-        if self.max_shift_fraction < 0:
-            raise InputError(f"max_shift_fraction is {self.max_shift_fraction}; expected a fraction of N >= 0")
+        if not 0 <= self.max_shift_fraction < math.inf:
+            raise InputError(f"max_shift_fraction is {self.max_shift_fraction}; expected a finite fraction of N >= 0")
 
 
 def _random_poses(batch: int, size: int, generator: torch.Generator, config: PairConfig, like: Tensor) -> PoseTarget:

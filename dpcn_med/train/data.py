@@ -34,14 +34,15 @@ def canonical_volume(image, size: int, preprocessing: Preprocessing | None = Non
 
 
 def volume_bank(names: tuple[str, ...], size: int, preprocessing: Preprocessing | None = None,
-                device: str | torch.device = "cpu") -> Tensor:
-    """``(V, 1, N, N, N)``: every named volume on its canonical cube, on ``device``.
+                device: str | torch.device = "cpu", key: str = "data.volumes") -> Tensor:
+    """``(V, 1, N, N, N)``: every named volume on its canonical cube, on ``device``; ``key`` names the list in
+    messages.
 
     Raises:
         InputError: no volumes, or one that cannot be read (the message names it).
     """
     if not names:
-        raise InputError("data.volumes: no volumes to make training pairs from")
+        raise InputError(f"{key}: no volumes to make pairs from")
     return torch.cat([canonical_volume(load_volume(name), size, preprocessing) for name in names]).to(device)
 
 

@@ -8,6 +8,9 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
+from dpcn_med.errors import InputError
+from dpcn_med.register import resolve_device
+
 
 @dataclass(frozen=True)
 class Process:
@@ -31,14 +34,22 @@ def start(device: str = "auto") -> Process:
     """Join the process group that ``torchrun`` (or the caller) described in ``RANK``, ``WORLD_SIZE``,
     ``LOCAL_RANK``, ``MASTER_ADDR`` and ``MASTER_PORT``; a plain single process without them.
 
-    ``device``: ``auto`` takes ``cuda:LOCAL_RANK`` when CUDA is there, else the CPU.
+    ``device``: ``auto`` takes ``cuda:LOCAL_RANK`` when CUDA is there, else the CPU; ``cuda`` takes
+    ``cuda:LOCAL_RANK``; ``cpu`` and ``cuda:N`` are taken as they are.
+
+    Raises:
+        InputError: an unknown device, or a CUDA device this machine does not have (before anything else is done).
     """
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     rank, local_rank = int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0"))
-    use_cuda = device.startswith("cuda") or (device == "auto" and torch.cuda.is_available())
-    chosen = torch.device(f"cuda:{local_rank}" if use_cuda and device in ("auto", "cuda") else
-                          device if use_cuda else "cpu")
+    chosen = resolve_device(device)
+    use_cuda = chosen.type == "cuda"
     if use_cuda:
+        if chosen.index is None:
+            chosen = torch.device(f"cuda:{local_rank}")
+        if chosen.index >= torch.cuda.device_count():
+            raise InputError(f"device {device!r}: there is no {chosen}; this machine has "
+                             f"{torch.cuda.device_count()} CUDA device(s), from cuda:0")
         torch.cuda.set_device(chosen)
     if world_size > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if use_cuda else "gloo", rank=rank, world_size=world_size)

@@ -333,6 +333,13 @@ def load_pair(files: PairFiles, bandwidth: int, preprocessing: Preprocessing | N
                      target=pose_on_grids(fixed_to_moving, fixed_grid, moving_grid))
 
 
+def check_crop(crop: tuple[float, float] | None, name: str = "crop") -> None:
+    """Refuse a slab crop that is neither ``None`` nor ``(low, high)`` with ``0 < low <= high <= 1``."""
+    if crop is not None and not 0 < crop[0] <= crop[1] <= 1:
+        raise InputError(f"{name} is {tuple(crop)}; expected (low, high) with 0 < low <= high <= 1, the fraction "
+                         "of the fixed foreground kept, or None for no crop")
+
+
 class FolderPairs(torch.utils.data.Dataset):
     """The pairs of a folder (layout in the module docstring) on the solver's canonical grids, with their poses.
 
@@ -362,9 +369,7 @@ class FolderPairs(torch.utils.data.Dataset):
     def __init__(self, root: str | os.PathLike, bandwidth: int, *, preprocessing: Preprocessing | None = None,
                  crop: tuple[float, float] | None = None, seed: int = 0) -> None:
         check_bandwidth(bandwidth, 2 * MAX_BANDWIDTH)
-        if crop is not None and not 0 < crop[0] <= crop[1] <= 1:
-            raise InputError(f"crop is {tuple(crop)}; expected (low, high) with 0 < low <= high <= 1, the fraction "
-                             "of the fixed foreground kept, or None for no crop")
+        check_crop(crop)
         self.pairs = discover_pairs(root)
         self.bandwidth = bandwidth
         self.preprocessing = preprocessing or Preprocessing()

@@ -3,8 +3,8 @@
 Single process, or one process per device under ``torchrun`` with DistributedDataParallel (each rank draws its own
 pairs; rank 0 validates, logs and writes). Everything a run writes goes to ``config.output``:
 
-* ``checkpoint.safetensors`` + ``checkpoint.json``: weights and optimiser state, the step (resumed from when
-  ``config.resume``);
+* ``checkpoint.safetensors`` + ``checkpoint.json``: weights and optimiser state, the step, the config (resumed from
+  when ``config.resume``, if the config's :data:`MUST_MATCH_ON_RESUME` settings are the checkpoint's);
 * ``log.csv``: a row per logged step (losses, rate, pairs per second) and per validation (success, median errors);
 * ``training.png``: the losses and the validation success against steps;
 * ``model.safetensors`` + ``model.json``: the final model with its training record (:func:`dpcn_med.models.save_model`).
@@ -12,16 +12,19 @@ pairs; rank 0 validates, logs and writes). Everything a run writes goes to ``con
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import torch
 import torch.distributed as dist
 from torch import Tensor
 
 from dpcn_med import __version__, io
+from dpcn_med.errors import InputError
 from dpcn_med.geometry import geodesic_distance
 from dpcn_med.models import DPCN, DPCNOutput, pose_loss, save_model
 from dpcn_med.models.weights import unique_state
@@ -33,6 +36,14 @@ from dpcn_med.train.folders import FolderPairs, collate_pairs
 
 SUCCESS_DEGREES, SUCCESS_VOXELS = 5.0, 2.0
 """A registration succeeds within 5 degrees and 2 voxels (the learning issue's criterion)."""
+
+MUST_MATCH_ON_RESUME = ("model", "data", "optimiser.weight_decay")
+"""Config entries a checkpoint must share with the run that resumes it: the networks (but their ``version``), the
+pairs, and the weight decay (restored with the optimiser's state). The rest may change: ``steps`` (to train on), the
+rest of the schedule, the batch size, the seed, the device, the intervals."""
+
+CHECKPOINT_ENTRIES = {"step": int, "param_groups": list, "optimiser_scalars": dict, "config": dict, "rows": list}
+"""What ``checkpoint.json`` holds, and the JSON type of each."""
 
 LOSS_TERMS = ("total", "rotation_kl", "rotation_l1", "scale_kl", "scale_l1", "translation_kl", "translation_l1")
 SCORES = ("success", "rotation_error_deg", "translation_error_vox")
@@ -120,24 +131,88 @@ def save_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, step: int, co
                    "config": config.to_json(), "rows": rows, "version": __version__}, description)
 
 
+_ABSENT = object()
+"""A config entry a checkpoint does not have."""
+
+
+def _resume_settings(config: dict) -> dict:
+    """The :data:`MUST_MATCH_ON_RESUME` entries of a config's JSON, nested as in the config."""
+    settings: dict = {}
+    for key in MUST_MATCH_ON_RESUME:
+        section, _, name = key.partition(".")
+        value = config.get(section, _ABSENT)
+        if name:
+            value = {name: value.get(name, _ABSENT) if isinstance(value, dict) else _ABSENT}
+        elif section == "model" and isinstance(value, dict):
+            value = {k: v for k, v in value.items() if k != "version"}  # a newer dpcn_med may resume
+        settings[section] = value
+    return settings
+
+
+def _first_difference(saved: Any, current: Any, key: str = "") -> tuple[str, Any, Any] | None:
+    """``(dotted key, saved value, current value)`` of the first entry where two JSON values differ, else ``None``."""
+    if isinstance(saved, dict) and isinstance(current, dict):
+        for name in [*current, *(k for k in saved if k not in current)]:
+            found = _first_difference(saved.get(name, _ABSENT), current.get(name, _ABSENT),
+                                      f"{key}.{name}" if key else name)
+            if found is not None:
+                return found
+        return None
+    return None if saved == current else (key, saved, current)
+
+
+def _shown(value: Any) -> str:
+    return "no such entry" if value is _ABSENT else json.dumps(value)
+
+
 def load_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, config: TrainConfig) -> tuple[int, list[dict]]:
-    """Restore a checkpoint into ``model`` and ``optimiser``: ``(step, log rows)``; ``(0, [])`` without one."""
+    """Restore a checkpoint into ``model`` and ``optimiser``: ``(step, log rows)``; ``(0, [])`` without one.
+
+    Raises:
+        InputError: the checkpoint is malformed, was made with other :data:`MUST_MATCH_ON_RESUME` settings, or is past
+            ``config.optimiser.steps``; the message names the file and the way out.
+    """
     weights, description = _checkpoint_paths(Path(config.output))
     if not (config.resume and weights.is_file() and description.is_file()):
         return 0, []
-    saved, tensors = io.read_json(description), io.read_tensors(weights)
+    afresh = "train into another output folder, or start afresh over this one with --restart (resume: false)"
+    saved = io.read_json(description)
+    wrong = [key for key, kind in CHECKPOINT_ENTRIES.items()
+             if not (isinstance(saved, dict) and isinstance(saved.get(key), kind))]
+    if wrong:
+        raise InputError(f"{description}: not a dpcn_med checkpoint (no valid {', '.join(wrong)}); {afresh}")
+    difference = _first_difference(_resume_settings(saved["config"]),
+                                   _resume_settings(json.loads(json.dumps(config.to_json()))))
+    if difference is not None:
+        key, before, now = difference
+        raise InputError(f"{description}: was made with {key} {_shown(before)}, this config has {_shown(now)}; "
+                         f"{afresh}")
+    if saved["step"] > config.optimiser.steps:
+        raise InputError(f"{description}: is at step {saved['step']}, past this config's optimiser.steps "
+                         f"{config.optimiser.steps}; ask for more steps, or {afresh}")
+    tensors = io.read_tensors(weights)
     model_state = {name[len("model."):]: t for name, t in tensors.items() if name.startswith("model.")}
+    shapes = {name: tensor.shape for name, tensor in unique_state(model).items()}
+    misfits = sorted(set(shapes) ^ set(model_state)) + sorted(
+        name for name in set(shapes) & set(model_state) if model_state[name].shape != shapes[name])
+    if misfits:
+        raise InputError(f"{weights}: does not fit this model ({len(misfits)} tensors missing, unexpected or of "
+                         f"another shape, such as {misfits[0]}); {afresh}")
     model.load_state_dict({**model.state_dict(), **model_state})
     state: dict = {"state": {}, "param_groups": saved["param_groups"]}
-    for name, tensor in tensors.items():
-        if name.startswith("optimiser."):
-            _, index, key = name.split(".", 2)
-            state["state"].setdefault(int(index), {})[key] = tensor
-    for name, value in saved["optimiser_scalars"].items():
-        index, key = name.split(".", 1)
-        state["state"].setdefault(int(index), {})[key] = value
-    optimiser.load_state_dict(state)
-    return int(saved["step"]), list(saved["rows"])
+    try:
+        for name, tensor in tensors.items():
+            if name.startswith("optimiser."):
+                _, index, key = name.split(".", 2)
+                state["state"].setdefault(int(index), {})[key] = tensor
+        for name, value in saved["optimiser_scalars"].items():
+            index, key = name.split(".", 1)
+            state["state"].setdefault(int(index), {})[key] = value
+        optimiser.load_state_dict(state)
+    except (KeyError, TypeError, ValueError, RuntimeError) as error:
+        raise InputError(f"{description}: its optimiser state does not fit this model ({' '.join(str(error).split())})"
+                         f"; {afresh}") from None
+    return saved["step"], saved["rows"]
 
 
 def plot(rows: list[dict], path: Path) -> None:
@@ -173,17 +248,14 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
     """
     process = distributed.start(config.device)
     output = Path(config.output)
-    if process.main:
-        output.mkdir(parents=True, exist_ok=True)
-    distributed.barrier(process)
-    size = 2 * config.model.bandwidth
-    preprocessing = config.model.grid_preprocessing()  # the model records it; register uses the same
-    bank = volume_bank(config.data.volumes, size, preprocessing, device=process.device)
     torch.manual_seed(config.seed)  # the same initial weights on every rank
     model = DPCN(config.model).to(process.device).train()
     optimiser = torch.optim.AdamW(model.parameters(), lr=config.optimiser.learning_rate,
                                   weight_decay=config.optimiser.weight_decay)
-    step, rows = load_checkpoint(model, optimiser, config)
+    step, rows = load_checkpoint(model, optimiser, config)  # first: a checkpoint of another config is refused at once
+    size = 2 * config.model.bandwidth
+    preprocessing = config.model.grid_preprocessing()  # the model records it; register uses the same
+    bank = volume_bank(config.data.volumes, size, preprocessing, device=process.device)
     network = model
     if process.distributed:
         network = torch.nn.parallel.DistributedDataParallel(
@@ -194,15 +266,18 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
     real = _real_pairs(config.data.folders, config, crop=config.data.folder_crop, seed=config.seed + process.rank)
     validation, real_validation = None, None
     if process.main:
-        validation_bank = volume_bank(config.data.validation_volumes, size, preprocessing, device=process.device)
+        validation_bank = volume_bank(config.data.validation_volumes, size, preprocessing, device=process.device,
+                                      key="data.validation_volumes")
         validation = validation_set(validation_bank, config.data.validation_pairs, config.data.validation_seed,
                                     config.data.pair)
         held_out = _real_pairs(config.data.validation_folders, config, crop=None, seed=0)
         if held_out is not None:
             items = [held_out[i] for i in range(len(held_out))]
             real_validation = [_to(collate_pairs(items[i:i + 16]), process.device) for i in range(0, len(items), 16)]
+        output.mkdir(parents=True, exist_ok=True)  # only now: a bad input leaves no empty folder behind
         if step == 0:
             rows.append(_validation_row(0, model, validation, real_validation))
+    distributed.barrier(process)
     amp = config.optimiser.amp and process.device.type == "cuda"
     from tqdm import tqdm
 
