@@ -73,8 +73,8 @@ def read_image(path: str | os.PathLike, *, max_bytes: int | None = None) -> sitk
     Raises:
         InputNotFoundError: the path does not exist.
         InputError: the file is unreadable, truncated, not a 3-D scalar volume, has an absurd spacing or sheared
-            axes, is a DICOM series with unevenly spaced slices, would not fit in memory, holds NaN or infinite
-            voxels, or is constant.
+            axes, is a DICOM series with unevenly spaced or tilted slices, is a NIfTI whose qform and sform
+            disagree, would not fit in memory, holds NaN or infinite voxels, or is constant.
     """
     name = os.fspath(path)
     return check_volume(_read_volume(name, max_bytes), name)
@@ -273,8 +273,9 @@ def _read_series(name: str, folder: Path, uid: str | None, max_bytes: int | None
 
 
 def _check_slice_positions(name: str, reader: sitk.ImageSeriesReader, image: sitk.Image) -> None:
-    """Refuse a series whose slices are not evenly spaced along the slice normal: a missing slice, or two
-    acquisitions mixed. ITK only warns and stacks the slices at their mean spacing, which stretches the volume."""
+    """Refuse a series whose slices are not evenly spaced along the slice normal (a missing slice, or two
+    acquisitions mixed: ITK only warns and stacks the slices at their mean spacing, which stretches the volume) or
+    step off the normal (a gantry tilt: ITK stacks them along the normal, unsheared, silently)."""
     key = "0020|0032"  # Image Position (Patient)
     count = image.GetSize()[2]
     if not all(reader.HasMetaDataKey(i, key) for i in range(count)):
@@ -284,8 +285,18 @@ def _check_slice_positions(name: str, reader: sitk.ImageSeriesReader, image: sit
     except ValueError:
         return
     normal = np.reshape(image.GetDirection(), (3, 3))[:, 2]
-    steps = np.diff(positions @ normal)
+    offsets = np.diff(positions, axis=0)
+    steps = offsets @ normal
     typical = float(np.median(steps))
+    sideways = np.linalg.norm(offsets - steps[:, None] * normal, axis=1)
+    if sideways.max() > max(0.01 * abs(typical), 1e-3):
+        tilt = math.degrees(math.atan2(float(np.median(sideways)), abs(typical)))
+        spread = float(np.linalg.norm(positions[-1] - positions[0] - (positions[-1] - positions[0]) @ normal * normal))
+        raise InputError(f"{name}: its slices are sheared, each {np.median(sideways):.3g} mm off the slice normal "
+                         f"from the one before (a gantry tilt of {tilt:.3g} degrees); read as a stack they would be "
+                         f"misplaced by up to {spread:.3g} mm: resample the series onto an orthogonal grid first "
+                         "(dcm2niix corrects the tilt; so does Slicer's DICOM import with acquisition geometry "
+                         "regularization)")
     uneven = np.flatnonzero(np.abs(steps - typical) > max(0.01 * abs(typical), 1e-3))
     if uneven.size:
         first = int(uneven[0])
@@ -440,6 +451,7 @@ def _check_nifti(path: Path, *, compressed: bool) -> None:
     if 0 in zooms:  # SimpleITK reads a voxel size of 0 as 1 mm (measured), silently
         raise InputError(f"{path}: its header gives voxel size {zooms} mm (pixdim); set the spacing in millimetres "
                          "(image.SetSpacing) and save the volume again")
+    _check_nifti_forms(path, loaded.header, (*loaded.shape, 1, 1)[:3])
     # The proxy's offset, not the header's vox_offset, which nibabel zeroes on loading.
     offset, dtype, voxels = int(proxy.offset), proxy.dtype, math.prod(proxy.shape)
     needed = offset + voxels * dtype.itemsize
@@ -453,6 +465,24 @@ def _check_nifti(path: Path, *, compressed: bool) -> None:
     if nan or infinite:
         raise InputError(f"{path}: holds {nan} NaN and {infinite} infinite voxels out of {voxels}; replace them "
                          "(e.g. numpy.nan_to_num) and save the volume again (SimpleITK would read them as 0)")
+
+
+def _check_nifti_forms(path: Path, header: Any, shape: tuple[int, ...]) -> None:
+    """Refuse a NIfTI header whose qform and sform are both set but place the volume differently (by more than 0.1
+    mm at a corner of its grid): readers disagree on which wins (measured: SimpleITK took the qform, nibabel, and so
+    the tools built on it, the sform, 36 mm apart), so any result would be right for one and wrong for the other."""
+    qform, q_code = header.get_qform(coded=True)
+    sform, s_code = header.get_sform(coded=True)
+    if not (q_code and s_code):
+        return
+    corners = np.array([[i, j, k, 1] for i in (0, shape[0] - 1) for j in (0, shape[1] - 1) for k in (0, shape[2] - 1)])
+    apart = float(np.linalg.norm((corners @ (qform - sform).T)[:, :3], axis=1).max())
+    if apart > 0.1:
+        names = {1: "scanner", 2: "aligned", 3: "Talairach", 4: "MNI", 5: "template"}
+        raise InputError(f"{path}: its header's qform (code {q_code}, {names.get(int(q_code), 'unknown')}) and sform "
+                         f"(code {s_code}, {names.get(int(s_code), 'unknown')}) place the volume up to {apart:.3g} mm "
+                         "apart, and readers differ on which wins; make them agree (nibabel: image.set_qform("
+                         "image.get_sform()) or the reverse, or fslorient) and save the volume again")
 
 
 def _scan_nifti(path: Path, compressed: bool, offset: int, dtype: np.dtype | None, needed: int) -> tuple[int, int, int]:

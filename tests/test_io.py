@@ -50,8 +50,10 @@ def cut(path: Path, fraction: float = 0.5) -> None:
     path.write_bytes(content[:int(len(content) * fraction)])
 
 
-def write_dicom_series(folder: Path, uid: str, description: str, slices: int, seed: int = 1) -> sitk.Image:
-    """Write an int16 series of axial slices into ``folder``; returns the volume it holds."""
+def write_dicom_series(folder: Path, uid: str, description: str, slices: int, seed: int = 1,
+                       tilt_mm: float = 0.0) -> sitk.Image:
+    """Write an int16 series of axial slices into ``folder``, each ``tilt_mm`` further along the columns than the one
+    before (a gantry tilt); returns the volume it holds."""
     rng = np.random.default_rng(seed)
     volume = sitk.GetImageFromArray(rng.integers(-500, 1500, (slices, 24, 20)).astype(np.int16))
     volume.SetSpacing((0.75, 0.5, 2.0))
@@ -63,7 +65,8 @@ def write_dicom_series(folder: Path, uid: str, description: str, slices: int, se
         image = volume[:, :, k]
         tags = {"0008|0060": "CT", "0020|000d": "1.2.826.0.1.3680043.2.1125.9", "0020|000e": uid,
                 "0008|103e": description, "0008|0018": f"{uid}.{k + 1}", "0020|0013": str(k + 1),
-                "0020|0032": "\\".join(map(str, volume.TransformIndexToPhysicalPoint((0, 0, k)))),
+                "0020|0032": "\\".join(map(str, np.add(volume.TransformIndexToPhysicalPoint((0, 0, k)),
+                                                       np.multiply(direction[1::3], k * tilt_mm)))),
                 "0020|0037": "\\".join(map(str, direction[0:3] + direction[3:6])), "0018|0050": "2.0"}
         for tag, value in tags.items():
             image.SetMetaData(tag, value)
@@ -158,6 +161,23 @@ class TestReadImage:
         assert sitk.ReadImage(str(path)).GetSpacing()[0] == 1.0  # what SimpleITK alone makes of it
         with pytest.raises(InputError, match=r"v\.nii: its header gives voxel size \(0\.0, 1\.25, 2\.5\) mm"):
             io.read_image(path)
+
+    def test_nifti_qform_and_sform_disagreeing(self, tmp_path):
+        nibabel = pytest.importorskip("nibabel")
+        data = np.zeros((20, 22, 24), np.float32)
+        data[5:15, 6:16, 4:20] = 100.0
+        qform = np.diag([2.0, 2.0, 2.0, 1.0])
+        turned = qform.copy()
+        turned[:3, :3] = np.array([[0.94, -0.342, 0], [0.342, 0.94, 0], [0, 0, 1]]) @ qform[:3, :3]  # 20 degrees
+        for name, sform in (("same.nii.gz", qform), ("apart.nii.gz", turned)):
+            image = nibabel.Nifti1Image(data, None)
+            image.set_qform(qform, code=1)
+            image.set_sform(sform, code=2)
+            nibabel.save(image, tmp_path / name)
+        assert io.read_image(tmp_path / "same.nii.gz").GetSize() == (20, 22, 24)
+        with pytest.raises(InputError, match=r"apart\.nii\.gz: its header's qform \(code 1, scanner\) and sform "
+                                             r"\(code 2, aligned\) place the volume up to 19\.7 mm apart"):
+            io.read_image(tmp_path / "apart.nii.gz")
 
     def test_sheared_axes(self, volume, tmp_path):
         path = tmp_path / "sheared.nrrd"
@@ -326,6 +346,13 @@ class TestReadImageDicom:
         next(tmp_path.glob("*-003.dcm")).unlink()
         with pytest.raises(InputError, match=r"its 5 slices are not evenly spaced: 4 mm between slices 3 and 4, 2 mm "
                                              r"elsewhere .*a slice is missing"):
+            io.read_image(tmp_path)
+
+    def test_gantry_tilt(self, tmp_path):
+        # ITK stacks tilted slices along the normal, unsheared, without a word.
+        write_dicom_series(tmp_path, "1.2.3.1", "tilted CT", slices=6, tilt_mm=1.0)
+        with pytest.raises(InputError, match=r"its slices are sheared, each 1 mm off the slice normal from the one "
+                                             r"before \(a gantry tilt of 26\.6 degrees\).* misplaced by up to 5 mm"):
             io.read_image(tmp_path)
 
     def test_single_slice_file(self, tmp_path):
