@@ -860,14 +860,21 @@ def is_mesh_path(path: str | os.PathLike) -> bool:
 
 
 def read_mesh(path: str | os.PathLike) -> pyvista.PolyData:
-    """A surface mesh or point cloud with at least one point, coordinates as stored (LPS mm for Slicer >= 4.11).
+    """A surface mesh or point cloud with at least one point, coordinates in LPS mm.
+
+    3D Slicer records the coordinate system of a saved model in the file: ``SPACE=RAS`` or ``SPACE=LPS`` in the
+    header text (.vtk's header line, .stl's header or ``solid`` line, a .ply or .obj comment), or a field-data string
+    array ``SPACE`` (.vtp). A model marked ``SPACE=RAS`` (older Slicer, or chosen on saving) is returned with x and y
+    negated (a rotation by 180 degrees about z, so the surface stays right-handed, normals included); one marked
+    ``SPACE=LPS`` or not marked at all is returned as stored, which is LPS as in Slicer >= 4.11.
 
     Args:
         path: .stl, .vtk, .vtp, .ply or .obj. A volumetric .vtk mesh becomes its outer surface.
 
     Raises:
         InputNotFoundError: the path does not exist.
-        InputError: the file is unreadable, not a mesh, or holds no points.
+        InputError: the file is unreadable, not a mesh, holds no points, or declares a ``SPACE`` other than RAS or
+            LPS.
     """
     name = os.fspath(path)
     if not os.path.exists(name):
@@ -884,6 +891,7 @@ def read_mesh(path: str | os.PathLike) -> pyvista.PolyData:
         mesh = pv.read(name)
     except (RuntimeError, ValueError, OSError) as error:
         raise InputError(f"{name}: not a readable mesh ({error}); export it again") from None
+    space = _mesh_space(name, mesh)  # before extract_surface, which need not keep the field data
     if isinstance(mesh, pv.UnstructuredGrid):
         mesh = mesh.extract_surface(algorithm="dataset_surface")
     if not isinstance(mesh, pv.PolyData):
@@ -891,4 +899,35 @@ def read_mesh(path: str | os.PathLike) -> pyvista.PolyData:
                          "images as .nii.gz, .nrrd or .mha")
     if mesh.n_points == 0:
         raise InputError(f"{name}: holds no points (an empty or unreadable mesh); export it again")
+    if space == "RAS":
+        mesh = mesh.transform(np.diag([-1.0, -1.0, 1.0, 1.0]), inplace=False)  # a copy; active normals follow
+        if "SPACE" in mesh.field_data:
+            mesh.field_data["SPACE"] = ["LPS"]
     return mesh
+
+
+_MESH_HEADER_BYTES = 4096
+_MESH_SPACE = re.compile(rb"SPACE=(\w*)")
+
+
+def _mesh_space(name: str, mesh: pyvista.DataSet) -> str | None:
+    """The coordinate system ``name`` declares as Slicer writes it, ``"RAS"`` or ``"LPS"``; None when it says nothing.
+
+    A field-data string array ``SPACE`` (Slicer's .vtp) wins; otherwise the first ``SPACE=...`` in the file's first
+    4 KB, read as bytes (the header of .vtk, .stl, .ply and .obj files Slicer writes). The header is parsed by hand
+    because ``pyvista.read`` hides its VTK reader and the readers expose it inconsistently (``GetHeader`` for .vtk
+    and .stl, ``GetComments`` for .ply, ``GetComment`` for .obj, which depend on the VTK version).
+    """
+    if "SPACE" in mesh.field_data:
+        values = np.asarray(mesh.field_data["SPACE"]).ravel()
+        found = str(values[0]) if values.size == 1 else repr(values.tolist())
+    else:
+        with open(name, "rb") as stream:
+            match = _MESH_SPACE.search(stream.read(_MESH_HEADER_BYTES))
+        if match is None:
+            return None
+        found = match.group(1).decode("latin-1")
+    if found.upper() not in ("RAS", "LPS"):
+        raise InputError(f"{name}: declares SPACE={found}, an unknown coordinate system; expected SPACE=RAS or "
+                         "SPACE=LPS (as 3D Slicer writes), or no SPACE for LPS")
+    return found.upper()

@@ -268,8 +268,8 @@ def voxelize(mesh: pyvista.DataSet, *, spacing: float = 1.0, margin: float = 10.
     cloud becomes the voxels its points fall in, dilated by one voxel so neighbouring points join up.
 
     Args:
-        mesh: pyvista data set with at least one point, coordinates in LPS millimetres (Slicer's default for saved
-            models since 4.11).
+        mesh: pyvista data set with at least one point, coordinates in LPS millimetres (as
+            :func:`dpcn_med.io.read_mesh` returns them, converting a file marked ``SPACE=RAS``).
         spacing: isotropic voxel size, mm.
         margin: empty border around the mesh's bounding box, mm.
 

@@ -328,8 +328,12 @@ class TestMasks:
 
 
 class TestSurfaceMesh:
-    def test_a_closed_surface_registers_to_its_volume(self, tmp_path):
-        """The head's surface (marching cubes of its foreground), moved by a known transform and saved as STL."""
+    @pytest.mark.parametrize("space", ["LPS", "RAS"])
+    def test_a_closed_surface_registers_to_its_volume(self, tmp_path, space):
+        """The head's surface (marching cubes of its foreground), moved by a known transform and saved as STL.
+
+        RAS: saved as 3D Slicer saves a model in RAS, x and y negated and 'SPACE=RAS' in the STL header.
+        """
         pv = pytest.importorskip("pyvista")
         from dpcn_med.preprocess import foreground_mask
 
@@ -342,7 +346,17 @@ class TestSurfaceMesh:
         physical = np.array([mask.TransformContinuousIndexToPhysicalPoint(p) for p in index.tolist()])
         truth = random_similarity(np.random.default_rng(8), foreground_box(fixed)[0], max_shift_mm=30.0)
         surface.points = np.array([truth.TransformPoint(p) for p in physical.tolist()])
-        surface.save(str(tmp_path / "head.stl"))
+        if space == "LPS":
+            surface.save(str(tmp_path / "head.stl"))
+        else:
+            import vtk
+
+            writer = vtk.vtkSTLWriter()
+            writer.SetInputData(surface.transform(np.diag([-1.0, -1.0, 1.0, 1.0]), inplace=False))
+            writer.SetHeader("3D Slicer output. SPACE=RAS")
+            writer.SetFileTypeToBinary()
+            writer.SetFileName(str(tmp_path / "head.stl"))
+            assert writer.Write() == 1
         result = register(fixed, tmp_path / "head.stl")
         # Within one voxel of the 2 mm image: the surface is a marching-cubes model of its binary mask, voxelised
         # again at 1 mm, not the image itself.
