@@ -273,36 +273,45 @@ def _read_series(name: str, folder: Path, uid: str | None, max_bytes: int | None
 
 
 def _check_slice_positions(name: str, reader: sitk.ImageSeriesReader, image: sitk.Image) -> None:
-    """Refuse a series whose slices are not evenly spaced along the slice normal (a missing slice, or two
-    acquisitions mixed: ITK only warns and stacks the slices at their mean spacing, which stretches the volume) or
-    step off the normal (a gantry tilt: ITK stacks them along the normal, unsheared, silently)."""
+    """Refuse a series whose slices are not where ITK stacks them: off the evenly spaced line that fits their Image
+    Positions best (a missing slice, or two acquisitions mixed: ITK only warns and stacks the slices at their mean
+    spacing, which stretches the volume), or stepping off the slice normal (a gantry tilt: ITK stacks them along the
+    normal, unsheared, silently).
+
+    Fitting the whole series, rather than comparing neighbours, keeps the positions' rounding (often to 0.01 mm in
+    the files) from reading as uneven or tilted slices.
+    """
     key = "0020|0032"  # Image Position (Patient)
     count = image.GetSize()[2]
-    if not all(reader.HasMetaDataKey(i, key) for i in range(count)):
+    if count < 2 or not all(reader.HasMetaDataKey(i, key) for i in range(count)):
         return  # without positions (e.g. secondary captures) ITK stacks the slices as given; nothing to compare
     try:
         positions = np.array([[float(v) for v in reader.GetMetaData(i, key).split("\\")] for i in range(count)])
     except ValueError:
         return
     normal = np.reshape(image.GetDirection(), (3, 3))[:, 2]
-    offsets = np.diff(positions, axis=0)
-    steps = offsets @ normal
-    typical = float(np.median(steps))
-    sideways = np.linalg.norm(offsets - steps[:, None] * normal, axis=1)
-    if sideways.max() > max(0.01 * abs(typical), 1e-3):
-        tilt = math.degrees(math.atan2(float(np.median(sideways)), abs(typical)))
-        spread = float(np.linalg.norm(positions[-1] - positions[0] - (positions[-1] - positions[0]) @ normal * normal))
-        raise InputError(f"{name}: its slices are sheared, each {np.median(sideways):.3g} mm off the slice normal "
-                         f"from the one before (a gantry tilt of {tilt:.3g} degrees); read as a stack they would be "
-                         f"misplaced by up to {spread:.3g} mm: resample the series onto an orthogonal grid first "
-                         "(dcm2niix corrects the tilt; so does Slicer's DICOM import with acquisition geometry "
-                         "regularization)")
-    uneven = np.flatnonzero(np.abs(steps - typical) > max(0.01 * abs(typical), 1e-3))
-    if uneven.size:
-        first = int(uneven[0])
-        raise InputError(f"{name}: its {count} slices are not evenly spaced: {steps[first]:.3g} mm between slices "
-                         f"{first + 1} and {first + 2}, {typical:.3g} mm elsewhere ({uneven.size} uneven gap(s)); a "
-                         "slice is missing or the folder mixes acquisitions: export the whole series again")
+    index = np.arange(count)
+    (first, stride), *_ = np.linalg.lstsq(np.stack([np.ones(count), index], 1), positions, rcond=None)
+    along = float(stride @ normal)
+    off = np.linalg.norm(positions - first - index[:, None] * stride, axis=1)
+    if off.max() > max(0.1 * abs(along), 0.1):
+        steps = np.diff(positions, axis=0) @ normal
+        typical = float(np.median(steps))
+        uneven = np.flatnonzero(np.abs(steps - typical) > 0.1 * abs(typical))
+        worst = int(off.argmax())
+        detail = (f"{steps[uneven[0]]:.3g} mm between slices {uneven[0] + 1} and {uneven[0] + 2}, {typical:.3g} mm "
+                  f"elsewhere ({uneven.size} uneven gap(s))" if uneven.size else
+                  f"slice {worst + 1} lies {off[worst]:.3g} mm from where an evenly spaced stack puts it")
+        raise InputError(f"{name}: its {count} slices are not evenly spaced along one line: {detail}; a slice is "
+                         "missing or the folder mixes acquisitions: export the whole series again")
+    sideways = float(np.linalg.norm(stride - along * normal))
+    spread = sideways * (count - 1)
+    if sideways > 0.01 * abs(along) and spread > 0.1:
+        tilt = math.degrees(math.atan2(sideways, abs(along)))
+        raise InputError(f"{name}: its slices are sheared, each {sideways:.3g} mm off the slice normal from the one "
+                         f"before (a gantry tilt of {tilt:.3g} degrees); read as a stack they would be misplaced by "
+                         f"up to {spread:.3g} mm: resample the series onto an orthogonal grid first (dcm2niix "
+                         "corrects the tilt; so does Slicer's DICOM import with acquisition geometry regularization)")
 
 
 def _file_information(filename: str) -> sitk.ImageFileReader:
@@ -468,21 +477,27 @@ def _check_nifti(path: Path, *, compressed: bool) -> None:
 
 
 def _check_nifti_forms(path: Path, header: Any, shape: tuple[int, ...]) -> None:
-    """Refuse a NIfTI header whose qform and sform are both set but place the volume differently (by more than 0.1
-    mm at a corner of its grid): readers disagree on which wins (measured: SimpleITK took the qform, nibabel, and so
-    the tools built on it, the sform, 36 mm apart), so any result would be right for one and wrong for the other."""
+    """Refuse a NIfTI header whose qform and sform are both set but place the volume differently: readers disagree
+    on which wins (measured: SimpleITK took the qform, nibabel, and so the tools built on it, the sform, 36 mm
+    apart), so any result would be right for one and wrong for the other.
+
+    Each corner of the grid may be off by 0.1 mm plus 2 mrad of its distance from voxel 0: the qform's rotation is a
+    float32 quaternion, and for an oblique volume saved from LPS (a rotation near 180 degrees) writers' own rounding
+    tilts it by up to 1.2 mrad (measured, SimpleITK; 0.43 mm at the far corner of a 360 x 360 x 300 mm grid).
+    """
     qform, q_code = header.get_qform(coded=True)
     sform, s_code = header.get_sform(coded=True)
     if not (q_code and s_code):
         return
     corners = np.array([[i, j, k, 1] for i in (0, shape[0] - 1) for j in (0, shape[1] - 1) for k in (0, shape[2] - 1)])
-    apart = float(np.linalg.norm((corners @ (qform - sform).T)[:, :3], axis=1).max())
-    if apart > 0.1:
+    apart = np.linalg.norm((corners @ (qform - sform).T)[:, :3], axis=1)
+    reach = np.linalg.norm(corners[:, :3] @ sform[:3, :3].T, axis=1)
+    if np.any(apart > 0.1 + 2e-3 * reach):
         names = {1: "scanner", 2: "aligned", 3: "Talairach", 4: "MNI", 5: "template"}
         raise InputError(f"{path}: its header's qform (code {q_code}, {names.get(int(q_code), 'unknown')}) and sform "
-                         f"(code {s_code}, {names.get(int(s_code), 'unknown')}) place the volume up to {apart:.3g} mm "
-                         "apart, and readers differ on which wins; make them agree (nibabel: image.set_qform("
-                         "image.get_sform()) or the reverse, or fslorient) and save the volume again")
+                         f"(code {s_code}, {names.get(int(s_code), 'unknown')}) place the volume up to "
+                         f"{apart.max():.3g} mm apart, and readers differ on which wins; make them agree (nibabel: "
+                         "image.set_qform(image.get_sform()) or the reverse, or fslorient) and save the volume again")
 
 
 def _scan_nifti(path: Path, compressed: bool, offset: int, dtype: np.dtype | None, needed: int) -> tuple[int, int, int]:
@@ -907,7 +922,7 @@ def read_mesh(path: str | os.PathLike) -> pyvista.PolyData:
 
 
 _MESH_HEADER_BYTES = 4096
-_MESH_SPACE = re.compile(rb"SPACE=(\w*)")
+_MESH_SPACE = re.compile(rb"\bSPACE=(\w*)")  # not COLORSPACE=...: a word of its own
 
 
 def _mesh_space(name: str, mesh: pyvista.DataSet) -> str | None:
