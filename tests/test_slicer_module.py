@@ -517,7 +517,7 @@ class TestRegistrationFailures:
     ], ids=["no-resampled", "no-transform", "no-report", "no-overlap", "no-confidence", "text-confidence",
             "truncated-report", "bad-transform", "bad-resampled"])
     def test_an_incomplete_result_changes_nothing(self, pair, tmp_path, complete_result, edit, message):
-        """A result folder missing a file or a report value (a dpcn_med older than the module) is refused whole."""
+        """A result folder missing a file, or a report value (a dpcn_med older than the module), is refused whole."""
         scene, fixed, moving = pair
         folder = tmp_path / "result"
         shutil.copytree(complete_result, folder)

@@ -99,6 +99,7 @@ class TestConfig:
 BAD_CONFIGS = {  # (text of TINY_YAML, its replacement, the message's key words)
     "quoted_resume": ("log_every: 1", "log_every: 1\nresume: 'false'", r"tiny\.yaml: resume: expected true or false, "
                       r"got 'false' \(a quoted string"),
+    "empty_section": ("pair: {max_shift_fraction: 0.1}", "pair:", r"data\.pair: expected a mapping, got null"),
     "quoted_amp": ("amp: false", "amp: 'false'", r"optimiser\.amp: expected true or false, got 'false'"),
     "volumes_not_a_list": ("  volumes: [mni]", "  volumes: mni",
                            r"data\.volumes: expected a list of strings, got 'mni'"),
@@ -335,6 +336,17 @@ class TestResume:
             f"dpcn-med: error: {folder / 'run' / 'checkpoint.json'}: was made with {difference}; train into another "
             "output folder, or start afresh over this one with --restart (resume: false)\n")
         assert {path.name: path.read_bytes() for path in (folder / "run").iterdir()} == before
+
+    def test_project_folder_moved_whole_resumes(self, tmp_path):
+        folder = tmp_path / "project"
+        folder.mkdir()
+        io.write_image(sitk.BinShrink(mni152_t1(), [4, 4, 4]), folder / "head.nii.gz")
+        (folder / "tiny.yaml").write_text(TINY_YAML.replace("validation_volumes: [mni]",
+                                                            "validation_volumes: [head.nii.gz]"))
+        assert main(["train", "--config", str(folder / "tiny.yaml"), "--steps", "1"]) == 0
+        moved = shutil.move(folder, tmp_path / "elsewhere")
+        assert main(["train", "--config", str(moved / "tiny.yaml"), "--steps", "2"]) == 0
+        assert json.loads((moved / "run" / "checkpoint.json").read_text())["step"] == 2
 
     @pytest.mark.parametrize("damage, name, message", [
         (lambda run: _damage_json(run, {}), "checkpoint.json", r"not a dpcn_med checkpoint \(no valid step, "

@@ -217,7 +217,7 @@ def _build(cls: type, values: Any, source: str, keys: tuple[str, ...] = ()) -> A
     they are."""
     where = _where(source, keys)
     if not isinstance(values, dict):
-        raise InputError(f"{where}: expected a mapping, got {type(values).__name__}")
+        raise InputError(f"{where}: expected a mapping, got {'null' if values is None else type(values).__name__}")
     known = [f.name for f in fields(cls)]
     unknown = sorted(set(values) - set(known), key=str)
     if unknown:

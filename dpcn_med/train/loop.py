@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -39,8 +40,10 @@ SUCCESS_DEGREES, SUCCESS_VOXELS = 5.0, 2.0
 
 MUST_MATCH_ON_RESUME = ("model", "data", "optimiser.weight_decay")
 """Config entries a checkpoint must share with the run that resumes it: the networks (but their ``version``), the
-pairs, and the weight decay (restored with the optimiser's state). The rest may change: ``steps`` (to train on), the
-rest of the schedule, the batch size, the seed, the device, the intervals."""
+pairs (the data's paths as seen from the output folder, or as they were: a project folder moves whole, or only its
+run), and the weight decay (restored with the optimiser's state). An entry only one side has (a checkpoint from a
+dpcn_med before that setting) differs. The rest may change: ``steps`` (to train on), the rest of the schedule, the
+batch size, the seed, the device, the intervals."""
 
 CHECKPOINT_ENTRIES = {"step": int, "param_groups": list, "optimiser_scalars": dict, "config": dict, "rows": list}
 """What ``checkpoint.json`` holds, and the JSON type of each."""
@@ -144,9 +147,20 @@ def _resume_settings(config: dict) -> dict:
         if name:
             value = {name: value.get(name, _ABSENT) if isinstance(value, dict) else _ABSENT}
         elif section == "model" and isinstance(value, dict):
-            value = {k: v for k, v in value.items() if k != "version"}  # a newer dpcn_med may resume
+            value = {k: v for k, v in value.items() if k != "version"}  # which dpcn_med saved it; not a setting
         settings[section] = value
     return settings
+
+
+def _seen_from(settings: dict, output: Any) -> dict:
+    """``settings`` with the data's absolute paths made relative to the ``output`` folder."""
+    data = settings.get("data")
+    if not (isinstance(data, dict) and isinstance(output, str)):
+        return settings
+    relative = {key: [os.path.relpath(p, output) if isinstance(p, str) and os.path.isabs(p) else p for p in paths]
+                for key in ("volumes", "validation_volumes", "folders", "validation_folders")
+                if isinstance(paths := data.get(key), list)}
+    return {**settings, "data": {**data, **relative}}
 
 
 def _first_difference(saved: Any, current: Any, key: str = "") -> tuple[str, Any, Any] | None:
@@ -181,9 +195,10 @@ def load_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, config: Train
              if not (isinstance(saved, dict) and isinstance(saved.get(key), kind))]
     if wrong:
         raise InputError(f"{description}: not a dpcn_med checkpoint (no valid {', '.join(wrong)}); {afresh}")
-    difference = _first_difference(_resume_settings(saved["config"]),
-                                   _resume_settings(json.loads(json.dumps(config.to_json()))))
-    if difference is not None:
+    settings = _resume_settings(saved["config"]), _resume_settings(json.loads(json.dumps(config.to_json())))
+    difference = _first_difference(*settings)
+    if difference is not None and _first_difference(_seen_from(settings[0], saved["config"].get("output")),
+                                                    _seen_from(settings[1], config.output)) is not None:
         key, before, now = difference
         raise InputError(f"{description}: was made with {key} {_shown(before)}, this config has {_shown(now)}; "
                          f"{afresh}")

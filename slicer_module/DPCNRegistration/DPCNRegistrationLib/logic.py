@@ -196,7 +196,8 @@ REPORT_NUMBERS = ("confidence", "overlap_fraction")
 def _require(path: Path) -> None:
     """Raise :class:`RegistrationError` unless dpcn-med wrote ``path``."""
     if not path.is_file():
-        raise RegistrationError(f"dpcn-med wrote no {path.name}: {OLDER_DPCN_MED}")
+        raise RegistrationError(f"dpcn-med wrote no {path.name} in {path.parent}, though it exited with success; "
+                                "the result is incomplete, so the scene is left as it was")
 
 
 def _read_report(path: Path) -> dict:
