@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import SimpleITK as sitk
+from numpy.typing import ArrayLike
 
+from dpcn_med.errors import InputError
 from dpcn_med.geometry import homogeneous_matrix, scale_and_rotation
 from dpcn_med.preprocess import foreground_mask
 
@@ -45,16 +47,40 @@ def moved_copy(image: sitk.Image, fixed_to_moving: sitk.Transform) -> sitk.Image
 
 
 def foreground_corners(image: sitk.Image, mask: sitk.Image | None = None) -> np.ndarray:
-    """``(8, 3)`` LPS corners (mm) of the bounding box of ``image``'s foreground (or of ``mask``), in voxel space."""
+    """``(8, 3)`` LPS corners (mm) of the bounding box of ``image``'s foreground (or of ``mask``), in voxel space.
+
+    Raises:
+        InputError: the foreground (or ``mask``) is empty.
+    """
     stats = sitk.LabelShapeStatisticsImageFilter()
     stats.Execute(foreground_mask(image) if mask is None else sitk.Cast(mask > 0, sitk.sitkUInt8))
+    if not stats.HasLabel(1):
+        raise InputError("mask is empty (no voxel > 0); give a mask with foreground" if mask is not None else
+                         "image has no foreground (it is blank or constant); corners need an object to surround")
     start, size = np.split(np.asarray(stats.GetBoundingBox(1), dtype=np.float64), 2)
     corners = [start - 0.5 + size * np.array(c) for c in np.ndindex(2, 2, 2)]
     return np.array([image.TransformContinuousIndexToPhysicalPoint(c.tolist()) for c in corners])
 
 
-def target_registration_error(estimate: sitk.Transform, truth: sitk.Transform, points: np.ndarray) -> float:
-    """Mean distance (mm) between where ``estimate`` and ``truth`` send ``points`` ``(K, 3)`` (both fixed to
-    moving)."""
+def target_registration_error(estimate: sitk.Transform, truth: sitk.Transform, points: ArrayLike) -> float:
+    """Mean distance (mm) between where ``estimate`` and ``truth`` send ``points`` (both fixed to moving).
+
+    Args:
+        estimate: the transform under test.
+        truth: the ground truth.
+        points: ``(K, 3)`` LPS mm, an array or a list of points.
+
+    Raises:
+        InputError: ``points`` is not ``(K, 3)`` with ``K >= 1``, or holds NaN or Inf.
+    """
+    try:
+        array = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError):  # ragged lists, strings
+        raise InputError(f"points is {points!r:.80} ({type(points).__name__}); expected (K, 3) numbers") from None
+    if array.ndim != 2 or array.shape[1] != 3 or array.shape[0] == 0:
+        raise InputError(f"points has shape {array.shape}; expected (K, 3) with at least one point")
+    if not np.isfinite(array).all():
+        raise InputError(f"points holds {int((~np.isfinite(array)).any(1).sum())} points with NaN or Inf "
+                         "coordinates; expected finite LPS millimetres")
     return float(np.mean([np.linalg.norm(np.subtract(estimate.TransformPoint(p.tolist()),
-                                                     truth.TransformPoint(p.tolist()))) for p in points]))
+                                                     truth.TransformPoint(p.tolist()))) for p in array]))

@@ -33,8 +33,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from dpcn_med.errors import InputError
+
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 """Homogeneous ``(4, 4)`` change of frame between RAS and LPS (its own inverse)."""
+
+SIMILARITY_TOLERANCE = 1e-4
+"""Relative spread of singular values (and, for a rigid transform, deviation of the scale from 1) still taken for a
+similarity: float32 files and solver rotations agree to about 1e-7; shear or anisotropy that matters is far larger."""
 
 
 def grid_centre(size: int) -> int:
@@ -320,25 +326,55 @@ def physical_transform(rotation: Tensor, scale: float | None, translation: Tenso
     return similarity_transform(matrix, centre, rigid=scale is None)
 
 
-def scale_and_rotation(linear: np.ndarray) -> tuple[float, np.ndarray]:
+def scale_and_rotation(linear: np.ndarray, name: str = "matrix") -> tuple[float, np.ndarray]:
     """Split the ``(3, 3)`` linear part ``mu R`` of a similarity into ``mu`` and the rotation nearest to ``R``.
 
     The rotation is projected in float64 (SVD): ITK checks orthogonality to 1e-10.
+
+    Args:
+        linear: ``(3, 3)`` ``mu R``, ``mu > 0``, ``R`` a proper rotation.
+        name: what messages call it.
+
+    Raises:
+        InputError: non-finite, singular, a reflection (determinant < 0), or shear or anisotropic scale (singular
+            values differing by more than :data:`SIMILARITY_TOLERANCE`, relative).
     """
-    mu = float(np.cbrt(np.linalg.det(linear)))
-    u, _, vt = np.linalg.svd(linear / mu)
-    return mu, u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    linear = np.asarray(linear, dtype=np.float64)
+    if linear.shape != (3, 3) or not np.isfinite(linear).all():
+        raise InputError(f"{name} is {linear.tolist()}; expected a finite (3, 3) linear part mu R")
+    singular = np.linalg.svd(linear, compute_uv=False)
+    shown = ", ".join(f"{value:.6g}" for value in singular)
+    if singular[-1] <= np.finfo(np.float64).eps * singular[0]:
+        problem = f"is singular (singular values {shown})"
+    elif np.linalg.det(linear) < 0:
+        problem = f"reflects (determinant {np.linalg.det(linear):.6g} < 0)"
+    elif singular[0] > singular[-1] * (1.0 + SIMILARITY_TOLERANCE):
+        problem = f"has shear or anisotropic scale (singular values {shown})"
+    else:
+        mu = float(np.cbrt(np.linalg.det(linear)))
+        u, _, vt = np.linalg.svd(linear / mu)
+        return mu, u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    raise InputError(f"{name} is not a similarity: its linear part {problem}; expected mu R (a rotation times an "
+                     "isotropic scale)")
 
 
-def similarity_transform(matrix: np.ndarray, centre: np.ndarray, *, rigid: bool) -> sitk.Transform:
+def similarity_transform(matrix: np.ndarray, centre: np.ndarray, *, rigid: bool, name: str = "matrix"
+                         ) -> sitk.Transform:
     """A ``(4, 4)`` similarity matrix as an ITK transform with the given centre (the matrix is unchanged).
 
     Args:
         matrix: ``[x', 1] = matrix [x, 1]``, its linear part ``mu R``, R a rotation (see :func:`scale_and_rotation`).
         centre: ``(3,)`` rotation centre, same frame as ``x``.
         rigid: a ``VersorRigid3DTransform`` (``mu`` must be 1) or a ``Similarity3DTransform``.
+        name: what messages call ``matrix``.
+
+    Raises:
+        InputError: ``matrix`` is not a similarity (:func:`scale_and_rotation`), or ``rigid`` and ``mu`` differs
+            from 1 by more than :data:`SIMILARITY_TOLERANCE` (a rigid transform would drop the scale).
     """
-    mu, rotation = scale_and_rotation(matrix[:3, :3])
+    mu, rotation = scale_and_rotation(matrix[:3, :3], name)
+    if rigid and abs(mu - 1.0) > SIMILARITY_TOLERANCE:
+        raise InputError(f"{name} scales by {mu:.6g}; a rigid transform has scale 1 (use rigid=False to keep it)")
     transform = sitk.VersorRigid3DTransform() if rigid else sitk.Similarity3DTransform()
     transform.SetCenter(tuple(float(c) for c in centre))
     transform.SetMatrix(rotation.flatten().tolist())

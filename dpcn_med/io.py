@@ -80,6 +80,10 @@ def read_image(path: str | os.PathLike, *, max_bytes: int | None = None) -> sitk
     return check_volume(_read_volume(name, max_bytes), name)
 
 
+_LABEL_MAP_PIXELS = (sitk.sitkLabelUInt8, sitk.sitkLabelUInt16, sitk.sitkLabelUInt32, sitk.sitkLabelUInt64)
+"""SimpleITK's run-length label maps: ``GetArrayFromImage`` on one aborts the process (SIGABRT), not raises."""
+
+
 def check_volume(image: sitk.Image, name: str = "image") -> sitk.Image:
     """``image`` itself if it is a usable volume (:func:`read_image`'s checks, for images made in memory).
 
@@ -88,9 +92,12 @@ def check_volume(image: sitk.Image, name: str = "image") -> sitk.Image:
         name: what to call it in messages (its file, or "fixed image").
 
     Raises:
-        InputError: not a 3-D scalar real-valued volume, an absurd spacing, sheared axes, NaN or infinite voxels, or
-            constant.
+        InputError: not a 3-D scalar real-valued volume (a label map included), an absurd spacing, sheared axes,
+            NaN or infinite voxels, or constant.
     """
+    if image.GetPixelID() in _LABEL_MAP_PIXELS:  # before any voxel access: SimpleITK aborts the process on one
+        raise InputError(f"{name}: is a label map ({image.GetPixelIDTypeAsString()}); expected an intensity volume "
+                         "(convert a segmentation with sitk.LabelMapToLabel)")
     _check_shape(name, image.GetDimension(), image.GetSize(), image.GetNumberOfComponentsPerPixel(), False)
     if image.GetPixelID() in (sitk.sitkComplexFloat32, sitk.sitkComplexFloat64):
         raise InputError(f"{name}: has complex voxels; expected a real-valued volume (keep the magnitude: "
@@ -137,9 +144,13 @@ def read_mask(path: str | os.PathLike, image: sitk.Image, *, role: str = "mask",
 def check_mask(mask: sitk.Image, image: sitk.Image, name: str = "mask", *, role: str = "mask") -> sitk.Image:
     """:func:`read_mask`'s checks and result for a mask made in memory; ``name`` is what messages call it.
 
+    A label map (``sitk.sitkLabelUInt8`` etc.) is converted to its label image first.
+
     Raises:
         InputError: not a 3-D scalar volume, on another grid than ``image``, empty, or more than two values.
     """
+    if mask.GetPixelID() in _LABEL_MAP_PIXELS:  # its voxels cannot be read as an array: SimpleITK would abort
+        mask = sitk.LabelMapToLabel(mask)
     _check_shape(name, mask.GetDimension(), mask.GetSize(), mask.GetNumberOfComponentsPerPixel(), False)
     _check_same_grid(name, role, mask, image)
     array = sitk.GetArrayViewFromImage(mask)  # ``mask`` stays referenced while the view is used

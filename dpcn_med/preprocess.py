@@ -12,6 +12,7 @@ import SimpleITK as sitk
 import torch
 from torch import Tensor
 
+from dpcn_med.arguments import check_integer, check_real, check_sequence
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import CanonicalGrid
 
@@ -26,18 +27,22 @@ class Preprocessing:
     """How a volume becomes a solver grid; the defaults are the product's.
 
     Attributes:
-        fill: fraction of the cube's side that the larger foreground diagonal of the pair spans (the rest is padding
-            against wrap-around and room for any rotation).
-        percentiles: foreground percentiles mapped to 0 and 1 for MR and ultrasound.
-        ct_window: Hounsfield units mapped to 0 and 1 for CT (air to 0, soft tissue near the middle, bone saturating).
-        outline_weight: the solver sees this much of the binary foreground blended with the normalised intensities.
-            The outline is shared by every modality, the interior contrast is not: measured on the built-in CT / MR
-            pair, 16 of 16 random poses registered with half and half against 14 of 16 on intensities alone (15 of 16
-            on the mask alone); same-modality pairs do as well or better.
-        max_voxels: larger images are first averaged down (``BinShrink``) to about this many voxels: the canonical
-            grid is far coarser, and foreground detection on a full CT takes seconds.
+        fill: fraction of the cube's side that the larger foreground diagonal of the pair spans, 0.1 to 1 (the rest
+            is padding against wrap-around and room for any rotation).
+        percentiles: foreground percentiles mapped to 0 and 1 for MR and ultrasound, ``0 <= low < high <= 100``.
+        ct_window: Hounsfield units mapped to 0 and 1 for CT, ``low < high`` (air to 0, soft tissue near the middle,
+            bone saturating).
+        outline_weight: the solver sees this much (0 to 1) of the binary foreground blended with the normalised
+            intensities. The outline is shared by every modality, the interior contrast is not: measured on the
+            built-in CT / MR pair, 16 of 16 random poses registered with half and half against 14 of 16 on
+            intensities alone (15 of 16 on the mask alone); same-modality pairs do as well or better.
+        max_voxels: larger images are first averaged down (``BinShrink``) to about this many voxels (at least 1000):
+            the canonical grid is far coarser, and foreground detection on a full CT takes seconds.
         ct_detection_hu: an image whose 1st percentile lies below this is taken for a CT when the modality is "auto"
             (air, and the scanner's padding, sit near -1000 HU or below; no MR or ultrasound goes there).
+
+    Raises:
+        InputError: a value of the wrong type or out of range, named with its value.
     """
 
     fill: float = 0.5
@@ -46,6 +51,29 @@ class Preprocessing:
     percentiles: tuple[float, float] = (1.0, 99.0)
     ct_window: tuple[float, float] = (-1000.0, 1000.0)
     ct_detection_hu: float = -500.0
+
+    def __post_init__(self) -> None:
+        checked = {
+            "fill": check_real("fill", self.fill, minimum=0.1, maximum=1.0),
+            "outline_weight": check_real("outline_weight", self.outline_weight, minimum=0.0, maximum=1.0),
+            "max_voxels": check_integer("max_voxels", self.max_voxels, minimum=1000),
+            "percentiles": _increasing_pair("percentiles", self.percentiles, 0.0, 100.0),
+            "ct_window": _increasing_pair("ct_window", self.ct_window),
+            "ct_detection_hu": check_real("ct_detection_hu", self.ct_detection_hu),
+        }
+        for name, value in checked.items():
+            object.__setattr__(self, name, value)
+
+
+def _increasing_pair(name: str, value: object, minimum: float | None = None, maximum: float | None = None
+                     ) -> tuple[float, float]:
+    """``value`` as ``(low, high)``: two finite numbers within the bounds, ``low < high``."""
+    low, high = check_sequence(name, value, length=2)
+    low = check_real(f"{name}[0]", low, minimum=minimum, maximum=maximum)
+    high = check_real(f"{name}[1]", high, minimum=minimum, maximum=maximum)
+    if low >= high:
+        raise InputError(f"{name} is {value!r}; expected (low, high) with low < high")
+    return low, high
 
 
 def foreground_mask(image: sitk.Image) -> sitk.Image:

@@ -13,6 +13,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -20,6 +21,7 @@ import SimpleITK as sitk
 import torch
 
 from dpcn_med import io
+from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequence, shown
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import (
     CanonicalGrid,
@@ -47,12 +49,12 @@ class Refinement:
     """Settings of the local Mattes mutual-information refinement (SimpleITK), defined once.
 
     Attributes:
-        shrink_factors: image pyramid, coarse to fine.
-        smoothing_mm: Gaussian sigma per level, mm.
-        samples: random metric samples per level (capped at every voxel).
-        histogram_bins: Mattes histogram bins.
-        iterations: optimiser iterations per level.
-        max_step_mm: largest first step of the regular-step gradient descent, as a physical shift in mm.
+        shrink_factors: image pyramid, coarse to fine (integers >= 1).
+        smoothing_mm: Gaussian sigma per level, mm (>= 0, one per shrink factor).
+        samples: random metric samples per level (capped at every voxel), at least 1000.
+        histogram_bins: Mattes histogram bins, at least 8.
+        iterations: optimiser iterations per level, at least 1.
+        max_step_mm: largest first step of the regular-step gradient descent, as a physical shift in mm (> 0).
         mask_margin_voxels: the fixed foreground, dilated by this many (preprocessing) voxels, is where the metric is
             sampled when the user gives no fixed mask.
         starts: global candidates refined: the solver's choice and up to ``starts - 1`` runner-ups (1: its choice
@@ -60,13 +62,19 @@ class Refinement:
             bands leave 2-16 plausible candidates on the MNI heads, and across modalities the translation peak that
             ranks them is low for all: on 4 of 60 MNI pseudo-CT poses the right one ranked 9th to 13th, so all of
             them run.
-        survivors: how many of them go on to each next level, by their metric (the last value holds for the rest).
+        survivors: how many of them (at least 1) go on to each next level, by their metric (the last value holds for
+            the rest).
         stored_start: the stored pose (identity) is one more start, after the solver's candidates: inputs already
             roughly aligned (one scanner frame, or aligned by hand) stay aligned where phase correlation misses (a
             coronal slab of a head registered onto the whole head as stored came back 85-167 mm off, the stored
             pose refined was right). Where the stored pose leaves no overlap (unrelated scanner frames) it is dropped
             before any work, like any candidate.
-        seed: sampling seed (the same inputs give the same result).
+        seed: sampling seed in ``[1, 2**32 - 1]`` (the same inputs give the same result; SimpleITK takes 0 for
+            ``sitkWallClock``, a new seed on every run).
+
+    Raises:
+        InputError: a value of the wrong type or out of range, named with its value (3 or 5 histogram bins left the
+            mutual information flat, about 1e-13, and an MNI head pose 230 mm off came back as refined).
     """
 
     shrink_factors: tuple[int, ...] = (4, 2, 1)
@@ -80,6 +88,32 @@ class Refinement:
     survivors: tuple[int, ...] = (2, 1)
     stored_start: bool = True
     seed: int = 20261123
+
+    def __post_init__(self) -> None:
+        factors = tuple(check_integer(f"shrink_factors[{level}]", factor, minimum=1)
+                        for level, factor in enumerate(check_sequence("shrink_factors", self.shrink_factors)))
+        smoothing = check_sequence("smoothing_mm", self.smoothing_mm)
+        if len(smoothing) != len(factors):
+            raise InputError(f"smoothing_mm is {self.smoothing_mm!r}: {len(smoothing)} values; expected "
+                             f"{len(factors)}, one per level of shrink_factors {factors}")
+        checked = {
+            "shrink_factors": factors,
+            "smoothing_mm": tuple(check_real(f"smoothing_mm[{level}]", sigma, minimum=0)
+                                  for level, sigma in enumerate(smoothing)),
+            "samples": check_integer("samples", self.samples, minimum=1000),
+            "histogram_bins": check_integer("histogram_bins", self.histogram_bins, minimum=8),
+            "iterations": check_integer("iterations", self.iterations, minimum=1),
+            "max_step_mm": check_real("max_step_mm", self.max_step_mm, minimum=0, above=True),
+            "mask_margin_voxels": check_integer("mask_margin_voxels", self.mask_margin_voxels, minimum=0),
+            "starts": check_integer("starts", self.starts, minimum=1),
+            "survivors": tuple(check_integer(f"survivors[{level}]", count, minimum=1)
+                               for level, count in enumerate(check_sequence("survivors", self.survivors))),
+            "stored_start": check_flag("stored_start", self.stored_start),
+            # SimpleITK's seed is an unsigned 32-bit integer, and 0 is sitkWallClock: a new seed on every run.
+            "seed": check_integer("seed", self.seed, minimum=1, maximum=2 ** 32 - 1),
+        }
+        for name, value in checked.items():
+            object.__setattr__(self, name, value)
 
 
 @dataclass
@@ -171,8 +205,14 @@ def describe_transform(fixed_to_moving: sitk.Transform) -> dict:
             "translation_mm": matrix[:3, 3].tolist()}
 
 
-def resolve_device(device: str) -> torch.device:
-    """``"auto"`` (CUDA when available, else CPU), ``"cpu"``, ``"cuda"`` or ``"cuda:N"``."""
+def resolve_device(device: str | torch.device) -> torch.device:
+    """``"auto"`` (CUDA when available, else CPU), ``"cpu"``, ``"cuda"`` or ``"cuda:N"`` (or a ``torch.device``).
+
+    Raises:
+        InputError: not a string or ``torch.device``, an unknown device, or a CUDA GPU this machine does not have.
+    """
+    if not isinstance(device, (str, torch.device)):
+        raise InputError(f"device is {shown(device)}; expected auto, cpu, cuda or cuda:N (or a torch.device)")
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
@@ -183,7 +223,27 @@ def resolve_device(device: str) -> torch.device:
         raise InputError(f"device {device!r} asked for, but this torch build sees no CUDA GPU; use --device cpu")
     if resolved.type not in ("cpu", "cuda"):
         raise InputError(f"device {device!r} is not supported; use auto, cpu, cuda or cuda:N")
+    if resolved.type == "cuda" and resolved.index is not None and resolved.index >= torch.cuda.device_count():
+        count = torch.cuda.device_count()
+        raise InputError(f"device {device!r} asked for, but this machine has {count} CUDA GPU"
+                         f"{'s' if count > 1 else ''}; use cuda:0{f' to cuda:{count - 1}' if count > 1 else ''}")
     return resolved
+
+
+def _check_image_like(name: str, value: object) -> None:
+    """Refuse what is neither a path nor a SimpleITK image, naming the argument (``name``)."""
+    if isinstance(value, (str, os.PathLike, sitk.Image)):
+        return
+    hint = (" (for an array, make one with SimpleITK.GetImageFromArray and set its spacing, origin and direction)"
+            if isinstance(value, (np.ndarray, torch.Tensor)) else "")
+    raise InputError(f"{name} is {shown(value)}; expected a path (str or os.PathLike) or a SimpleITK image{hint}")
+
+
+def _check_settings(name: str, value: object, kind: type) -> None:
+    """Refuse a settings object that is neither ``None`` nor a ``kind`` (a dict passes no check of its fields)."""
+    if value is not None and not isinstance(value, kind):
+        hint = f" (from a dict: {kind.__name__}(**values))" if isinstance(value, dict) else ""
+        raise InputError(f"{name} is {shown(value)}; expected a {kind.__name__} or None{hint}")
 
 
 def load_image(source: ImageLike, role: str = "image") -> sitk.Image:
@@ -224,9 +284,15 @@ def load_feature_model(model: str | os.PathLike | None, bandwidth: int, device: 
 
     Raises:
         InputNotFoundError: the model's files are missing.
-        InputError: not a dpcn_med model, or trained at another bandwidth than ``bandwidth``.
+        InputError: not a path (or ``None``), an empty one, not a dpcn_med model, or trained at another bandwidth
+            than ``bandwidth``.
     """
-    if model is None or str(model).lower() in LEARNING_FREE:
+    if model is None:
+        return None
+    if not isinstance(model, (str, os.PathLike)) or Path(model).name in ("", ".."):
+        raise InputError(f"model is {shown(model)}; expected the path of a model (NAME.safetensors, NAME.json or "
+                         f"NAME), or None or 'none' for the learning-free solver")
+    if os.fspath(model).lower() in LEARNING_FREE:
         return None
     from dpcn_med.models import load_model
 
@@ -272,12 +338,25 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         ones.
 
     Raises:
-        InputError: unreadable or unusable inputs, masks or options; the message names the file and the problem.
+        InputError: unreadable or unusable inputs, masks or options, or an argument of the wrong type; the message
+            names the file or the argument and the problem.
     """
+    for name, value in (("fixed", fixed), ("moving", moving)):
+        _check_image_like(name, value)
+    for name, value in (("fixed_mask", fixed_mask), ("moving_mask", moving_mask)):
+        if value is not None:
+            _check_image_like(name, value)
+    refine, resample = check_flag("refine", refine), check_flag("resample", resample)
+    _check_settings("preprocessing", preprocessing, Preprocessing)
+    _check_settings("refinement", refinement, Refinement)
+    _check_settings("solver", solver, SolverConfig)
+    if progress is not None and not callable(progress):
+        raise InputError(f"progress is {shown(progress)}; expected a function progress(stage, fraction) or None")
     report = progress or (lambda stage, fraction: None)
     refinement = refinement or Refinement()
     mode = check_mode(mode)
-    check_bandwidth(bandwidth, 2 * MAX_BANDWIDTH)  # before any work: the grids will be (2B)^3
+    # before any work: the grids will be (2B)^3
+    bandwidth = check_bandwidth(check_integer("bandwidth", bandwidth), 2 * MAX_BANDWIDTH)
     for name, value in (("fixed_modality", fixed_modality), ("moving_modality", moving_modality)):
         if value not in MODALITIES:
             raise InputError(f"{name} {value!r} is not supported; use one of {', '.join(MODALITIES)}")

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
+from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.geometry import homogeneous_matrix
 
@@ -61,6 +62,16 @@ class TestForegroundCorners:
         expected = image.TransformContinuousIndexToPhysicalPoint((1.5, 3.5, 2.5))
         assert any(np.allclose(c, expected) for c in corners)
 
+    # Before: ITK's RuntimeError "No label object with label 1" from LabelShapeStatisticsImageFilter.
+    def test_empty_mask(self):
+        mask = sitk.Image(16, 14, 12, sitk.sitkUInt8)
+        with pytest.raises(InputError, match=r"mask is empty \(no voxel > 0\)"):
+            foreground_corners(_asymmetric_image(), mask)
+
+    def test_blank_image(self):
+        with pytest.raises(InputError, match="image has no foreground"):
+            foreground_corners(sitk.Image(16, 14, 12, sitk.sitkFloat32))
+
 
 class TestTargetRegistrationError:
     def test_pure_shift(self):
@@ -73,3 +84,26 @@ class TestTargetRegistrationError:
         copy = sitk.Similarity3DTransform(truth)
         assert target_registration_error(copy, truth, np.eye(3) * 50) == pytest.approx(0.0, abs=1e-9)
         np.testing.assert_allclose(homogeneous_matrix(copy), homogeneous_matrix(truth))
+
+    def test_lists_of_points(self):  # before: AttributeError ('list' object has no attribute 'tolist')
+        shift = sitk.TranslationTransform(3, (3.0, 0.0, 4.0))
+        identity = sitk.Transform(3, sitk.sitkIdentity)
+        assert target_registration_error(shift, identity, [[0.0, 0.0, 0.0], (1, 2, 3)]) == pytest.approx(5.0)
+        assert target_registration_error(shift, identity, ((1.0, 2.0, 3.0),)) == pytest.approx(5.0)
+
+    # Before: an empty set gave NaN with a RuntimeWarning, a NaN point NaN, a single (3,) point a SWIG TypeError.
+    @pytest.mark.parametrize(("points", "message"), [
+        (np.zeros((0, 3)), r"points has shape \(0, 3\); expected \(K, 3\) with at least one point"),
+        ([], r"points has shape \(0,\); expected \(K, 3\)"),
+        (np.array([1.0, 2.0, 3.0]), r"points has shape \(3,\); expected \(K, 3\)"),
+        (np.zeros((4, 2)), r"points has shape \(4, 2\); expected \(K, 3\)"),
+        ([[0.0, 0.0, 0.0], [np.nan, 1.0, 2.0]], r"points holds 1 points with NaN or Inf coordinates"),
+        ([[np.inf, 0.0, 0.0]], r"points holds 1 points with NaN or Inf coordinates"),
+        ([[1.0, 2.0, 3.0], [1.0, 2.0]], r"points is \[\[1\.0, 2\.0, 3\.0\], \[1\.0, 2\.0\]\] \(list\); "
+                                        r"expected \(K, 3\)"),
+        ("corners", r"points is 'corners' \(str\); expected \(K, 3\) numbers"),
+    ], ids=["empty", "empty list", "one flat point", "2-D points", "nan", "inf", "ragged", "string"])
+    def test_bad_points_are_refused(self, points, message):
+        identity = sitk.Transform(3, sitk.sitkIdentity)
+        with pytest.raises(InputError, match=message):
+            target_registration_error(identity, identity, points)

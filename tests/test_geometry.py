@@ -9,6 +9,7 @@ import pytest
 import SimpleITK as sitk
 import torch
 
+from dpcn_med.errors import InputError
 from dpcn_med.geometry import (
     LPS_FROM_RAS,
     CanonicalGrid,
@@ -234,6 +235,35 @@ class TestScaleAndRotation:
         assert mu == pytest.approx(1.13)
         np.testing.assert_allclose(found, rotation, atol=1e-12)
 
+    def test_float32_rounding_is_tolerated(self):
+        rotation = axis_angle_to_matrix(torch.tensor([0.3, 2.0, -1.1])).numpy()  # orthogonal to about 1e-7
+        mu, found = scale_and_rotation(0.9 * rotation)
+        assert mu == pytest.approx(0.9, rel=1e-6)
+        np.testing.assert_allclose(found @ found.T, np.eye(3), atol=1e-12)
+
+    # Before: a reflection came back as mu = -1 with a proper rotation, shear and anisotropic scale as a similarity
+    # (mu = 1.26 for diag(1, 1, 2)), a singular or NaN matrix as numpy's "SVD did not converge".
+    @pytest.mark.parametrize(("linear", "message"), [
+        (np.diag([-1.0, 1.0, 1.0]), r"reflects \(determinant -1 < 0\)"),
+        (np.diag([-2.0, -2.0, -2.0]), r"reflects \(determinant -8 < 0\)"),
+        (np.array([[1.0, 0.2, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), r"has shear or anisotropic scale \(singular "
+                                                                       r"values 1\.10499, 1, 0\.904988\)"),
+        (np.diag([1.0, 1.0, 2.0]), r"has shear or anisotropic scale \(singular values 2, 1, 1\)"),
+        (np.diag([1.0, 1.0, 1.0 + 3e-4]), "has shear or anisotropic scale"),
+        (np.diag([1.0, 1.0, 0.0]), r"is singular \(singular values 1, 1, 0\)"),
+        (np.zeros((3, 3)), "is singular"),
+        (np.full((3, 3), np.nan), r"rotation is \[\[nan, .*; expected a finite \(3, 3\) linear part"),
+        (np.eye(4), r"rotation is .*; expected a finite \(3, 3\) linear part"),
+    ], ids=["reflection", "negative scale", "shear", "anisotropic", "anisotropic 3e-4", "singular", "zero", "nan",
+            "4x4"])
+    def test_refuses_what_is_not_a_similarity(self, linear, message):
+        with pytest.raises(InputError, match=message):
+            scale_and_rotation(linear, "rotation")
+
+    def test_names_the_matrix(self):
+        with pytest.raises(InputError, match=r"^truth\.tfm is not a similarity: its linear part reflects"):
+            scale_and_rotation(np.diag([1.0, -1.0, 1.0]), "truth.tfm")
+
 
 class TestSimilarityTransform:
     @pytest.mark.parametrize("rigid", [True, False])
@@ -246,6 +276,18 @@ class TestSimilarityTransform:
         assert rebuilt.GetName() == ("VersorRigid3DTransform" if rigid else "Similarity3DTransform")
         np.testing.assert_allclose(rebuilt.GetFixedParameters(), centre)
         np.testing.assert_allclose(homogeneous_matrix(rebuilt), homogeneous_matrix(source), atol=1e-9)
+
+    def test_rigid_refuses_a_scale(self):  # before: a VersorRigid3DTransform that dropped the 1.2 silently
+        matrix = np.eye(4)
+        matrix[:3, :3] *= 1.2
+        with pytest.raises(InputError, match=r"start scales by 1\.2; a rigid transform has scale 1"):
+            similarity_transform(matrix, np.zeros(3), rigid=True, name="start")
+        assert similarity_transform(matrix, np.zeros(3), rigid=False).TransformPoint((10.0, 0.0, 0.0)) == \
+            pytest.approx((12.0, 0.0, 0.0))
+
+    def test_refuses_a_reflection(self):
+        with pytest.raises(InputError, match="matrix is not a similarity: its linear part reflects"):
+            similarity_transform(np.diag([1.0, 1.0, -1.0, 1.0]), np.zeros(3), rigid=False)
 
 
 class TestPhysicalTransform:

@@ -6,7 +6,9 @@ import json
 import math
 import os
 import re
+import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import nibabel
@@ -479,6 +481,43 @@ class TestCheckVolume:
     def test_two_dimensional_mask(self, volume):
         with pytest.raises(InputError, match="moving mask: is 2-D"):
             io.check_mask(sitk.Image(20, 24, sitk.sitkUInt8), volume, "moving mask")
+
+    # SimpleITK aborts the whole process (SIGABRT, "not supported for LabelMaps") when a label map's voxels are read
+    # as an array, as both checks did before: each case runs in a child so an abort fails the test, not pytest.
+    def test_label_map_volume_is_refused_before_reading_voxels(self):
+        result = _run_child("""
+            labels = sitk.Image([8, 9, 10], sitk.sitkUInt8)
+            labels[2:5, 2:6, 3:7] = 1
+            for pixel in (sitk.sitkLabelUInt8, sitk.sitkLabelUInt16, sitk.sitkLabelUInt32, sitk.sitkLabelUInt64):
+                try:
+                    io.check_volume(sitk.Cast(labels, pixel), "atlas")
+                except InputError as error:
+                    print(error)
+            """)
+        assert result.returncode == 0, result.stderr[-500:]
+        assert result.stdout.splitlines() == [
+            f"atlas: is a label map (label of {bits}-bit unsigned integer); expected an intensity volume (convert a "
+            "segmentation with sitk.LabelMapToLabel)" for bits in (8, 16, 32, 64)]
+
+    def test_label_map_mask_is_converted(self):
+        result = _run_child("""
+            image = sitk.Image([8, 9, 10], sitk.sitkFloat32)
+            labels = sitk.Image([8, 9, 10], sitk.sitkUInt8)
+            labels[2:5, 2:6, 3:7] = 3
+            labels.CopyInformation(image)
+            mask = io.check_mask(sitk.LabelImageToLabelMap(labels), image)
+            array = sitk.GetArrayFromImage(mask)
+            print(mask.GetPixelIDTypeAsString(), int(array.sum()), array.max())
+            """)
+        assert result.returncode == 0, result.stderr[-500:]
+        assert result.stdout == "8-bit unsigned integer 48 1\n"  # 3 x 4 x 4 voxels of label 3 become ones
+
+
+def _run_child(body: str) -> subprocess.CompletedProcess:
+    """``body`` in a fresh Python with ``sitk``, ``io`` and ``InputError`` imported; output captured."""
+    code = "import SimpleITK as sitk\nfrom dpcn_med import io\nfrom dpcn_med.errors import InputError\n"
+    return subprocess.run([sys.executable, "-c", code + textwrap.dedent(body)], capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
 
 
 class TestReadCsv:

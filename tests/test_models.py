@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -218,3 +219,22 @@ class TestWeights:
 
     def test_paths(self):
         assert [p.name for p in model_paths("dir/model.v2.json")] == ["model.v2.safetensors", "model.v2.json"]
+        assert model_paths(Path("dir") / "model") == (Path("dir/model.safetensors"), Path("dir/model.json"))
+
+    # Before: None, 3 and b"x" raised TypeError, "" and "." a ValueError about PosixPath('.'), "runs/" became
+    # runs.safetensors beside the folder.
+    @pytest.mark.parametrize(("path", "message"), [
+        (None, r"model path is None \(NoneType\); expected a model file: NAME, NAME\.safetensors or NAME\.json"),
+        (3, r"model path is 3 \(int\); expected a model file"),
+        (b"model", r"model path is b'model' \(bytes\); expected a model file"),
+        ("", r"model path is empty; expected a model file"),
+        (".", r"model path '\.' names a folder, not a file"),
+        ("/", r"model path '/' names a folder, not a file"),
+        ("runs/", r"model path 'runs/' names a folder, not a file"),
+        ("runs/..", r"model path 'runs/\.\.' names a folder, not a file"),
+    ])
+    def test_bad_paths_are_refused(self, path, message):
+        with pytest.raises(InputError, match=message):
+            model_paths(path)
+        with pytest.raises(InputError, match=message):
+            load_model(path)

@@ -38,6 +38,35 @@ def _box_image() -> sitk.Image:
     return image
 
 
+class TestPreprocessingSettings:
+    def test_defaults_and_typical_values_construct(self):
+        assert Preprocessing() == Preprocessing(fill=0.5, percentiles=(1, 99), ct_window=[-1000, 1000])
+        settings = Preprocessing(fill=1, outline_weight=0, max_voxels=np.int64(1000), percentiles=[0, 100],
+                                 ct_window=(np.float32(-1024), 3071), ct_detection_hu=-1024)
+        assert settings.percentiles == (0.0, 100.0) and settings.ct_window == (-1024.0, 3071.0)
+        assert type(settings.max_voxels) is int and type(settings.fill) is float
+
+    @pytest.mark.parametrize(("changes", "message"), [
+        ({"fill": 0.0}, r"fill is 0\.0; expected a finite number >= 0\.1 and <= 1$"),
+        ({"fill": 1.5}, r"fill is 1\.5; expected a finite number >= 0\.1"),
+        ({"fill": "0.5"}, r"fill is '0\.5' \(str\); expected a finite number"),
+        ({"outline_weight": 3.0}, r"outline_weight is 3\.0; expected a finite number >= 0 and <= 1$"),
+        ({"outline_weight": float("nan")}, r"outline_weight is nan; expected a finite number"),
+        ({"max_voxels": 0}, r"max_voxels is 0; expected an integer >= 1000$"),
+        ({"max_voxels": 2e6}, r"max_voxels is 2000000\.0 \(float\); expected an integer >= 1000$"),
+        ({"percentiles": (99.0, 1.0)}, r"percentiles is \(99\.0, 1\.0\); expected \(low, high\) with low < high$"),
+        ({"percentiles": (1.0,)}, r"percentiles is \(1\.0,\): 1 values; expected 2$"),
+        ({"percentiles": (-1.0, 99.0)}, r"percentiles\[0\] is -1\.0; expected a finite number >= 0 and <= 100$"),
+        ({"percentiles": (1.0, float("nan"))}, r"percentiles\[1\] is nan; expected a finite number"),
+        ({"ct_window": (0.0, 0.0)}, r"ct_window is \(0\.0, 0\.0\); expected \(low, high\) with low < high$"),
+        ({"ct_window": "-1000,1000"}, r"ct_window is '-1000,1000' \(str\); expected a tuple of 2 values$"),
+        ({"ct_detection_hu": float("-inf")}, r"ct_detection_hu is -inf; expected a finite number$"),
+    ])
+    def test_bad_values_are_refused(self, changes, message):
+        with pytest.raises(InputError, match=message):
+            Preprocessing(**changes)
+
+
 class TestForegroundBox:
     def test_physical_centre_and_diagonal(self):
         image = _box_image()

@@ -435,6 +435,87 @@ class TestErrors:
             register(fixed, fixed, fixed_mask=tmp_path / "corner.nii.gz")
 
 
+class TestRefinementSettings:
+    def test_defaults_and_typical_values_construct(self):
+        assert Refinement() == Refinement(shrink_factors=[4, 2, 1], smoothing_mm=[2, 1, 0], survivors=[2, 1])
+        settings = Refinement(shrink_factors=(np.int64(2), 1), smoothing_mm=(1, 0), samples=1000, histogram_bins=8,
+                              iterations=1, max_step_mm=1, mask_margin_voxels=0, starts=1, survivors=(1,),
+                              stored_start=np.bool_(False), seed=2 ** 32 - 1)
+        assert settings.shrink_factors == (2, 1) and type(settings.shrink_factors[0]) is int
+        assert settings.smoothing_mm == (1.0, 0.0) and settings.max_step_mm == 1.0
+        assert settings.stored_start is False and settings.survivors == (1,)
+
+    @pytest.mark.parametrize(("changes", "message"), [
+        ({"histogram_bins": 3}, r"histogram_bins is 3; expected an integer >= 8$"),
+        ({"histogram_bins": 32.0}, r"histogram_bins is 32\.0 \(float\); expected an integer >= 8$"),
+        ({"samples": 100}, r"samples is 100; expected an integer >= 1000$"),
+        ({"iterations": 0}, r"iterations is 0; expected an integer >= 1$"),
+        ({"starts": 0}, r"starts is 0; expected an integer >= 1$"),
+        ({"mask_margin_voxels": -1}, r"mask_margin_voxels is -1; expected an integer >= 0$"),
+        ({"max_step_mm": 0.0}, r"max_step_mm is 0\.0; expected a finite number > 0$"),
+        ({"max_step_mm": float("nan")}, r"max_step_mm is nan; expected a finite number > 0$"),
+        ({"shrink_factors": ()}, r"shrink_factors is empty; expected at least one value$"),
+        ({"shrink_factors": 4}, r"shrink_factors is 4 \(int\); expected a tuple$"),
+        ({"shrink_factors": (4, 0, 1)}, r"shrink_factors\[1\] is 0; expected an integer >= 1$"),
+        ({"smoothing_mm": (2.0, 1.0)},
+         r"smoothing_mm is \(2\.0, 1\.0\): 2 values; expected 3, one per level of shrink_factors \(4, 2, 1\)$"),
+        ({"smoothing_mm": (-1.0, 1.0, 0.0)}, r"smoothing_mm\[0\] is -1\.0; expected a finite number >= 0$"),
+        ({"survivors": ()}, r"survivors is empty; expected at least one value$"),
+        ({"survivors": (2, 0)}, r"survivors\[1\] is 0; expected an integer >= 1$"),
+        ({"stored_start": "false"}, r"stored_start is 'false' \(str\); expected True or False$"),
+        ({"seed": 0}, r"seed is 0; expected an integer >= 1 and <= 4294967295$"),
+        ({"seed": 2 ** 32}, r"seed is 4294967296; expected an integer >= 1"),
+    ])
+    def test_bad_values_are_refused(self, changes, message):
+        with pytest.raises(InputError, match=message):
+            Refinement(**changes)
+
+
+def _small_volume() -> sitk.Image:
+    """A 6^3 volume with a random 4^3 core: registers in a fraction of a second."""
+    array = np.zeros((6, 6, 6), np.float32)
+    array[1:5, 1:5, 1:5] = np.random.default_rng(0).random((4, 4, 4)) * 100 + 50
+    image = sitk.GetImageFromArray(array)
+    image.SetSpacing((4.0, 4.0, 4.0))
+    return image
+
+
+class TestArguments:
+    @pytest.mark.parametrize(("changes", "message"), [
+        ({"fixed": None},
+         r"^fixed is None \(NoneType\); expected a path \(str or os\.PathLike\) or a SimpleITK image$"),
+        ({"moving": np.zeros((4, 4, 4))}, r"^moving is array\(.*\(ndarray\); expected a path .*GetImageFromArray"),
+        ({"fixed_mask": 1}, r"^fixed_mask is 1 \(int\); expected a path"),
+        ({"moving_mask": torch.ones(4, 4, 4)}, r"^moving_mask is tensor\(.*\(Tensor\); expected a path"),
+        ({"refine": "false"}, r"^refine is 'false' \(str\); expected True or False$"),
+        ({"resample": 1}, r"^resample is 1 \(int\); expected True or False$"),
+        ({"bandwidth": 32.0}, r"^bandwidth is 32\.0 \(float\); expected an integer$"),
+        ({"bandwidth": True}, r"^bandwidth is True \(bool\); expected an integer$"),
+        ({"refinement": {"starts": 1}},
+         r"^refinement is \{'starts': 1\} \(dict\); expected a Refinement or None "
+         r"\(from a dict: Refinement\(\*\*values\)\)$"),
+        ({"preprocessing": Refinement()}, r"^preprocessing is Refinement\(.*\); expected a Preprocessing or None$"),
+        ({"solver": {}}, r"^solver is \{\} \(dict\); expected a SolverConfig or None"),
+        ({"progress": "log"}, r"^progress is 'log' \(str\); expected a function progress\(stage, fraction\) or None$"),
+        ({"device": None}, r"^device is None \(NoneType\); expected auto, cpu, cuda or cuda:N \(or a torch\.device\)$"),
+        ({"model": ""}, r"^model is '' \(str\); expected the path of a model .*, or None or 'none'"),
+        ({"model": 0}, r"^model is 0 \(int\); expected the path of a model"),
+    ])
+    def test_bad_arguments_are_refused_before_any_work(self, changes, message):
+        arguments = {"fixed": _small_volume(), "moving": _small_volume(), **changes}
+        with pytest.raises(InputError, match=message):
+            register(arguments.pop("fixed"), arguments.pop("moving"), **arguments)
+
+    def test_typical_values_are_taken(self):
+        calls = []
+        result = register(_small_volume(), _small_volume(), bandwidth=np.int64(4), refine=np.bool_(False),
+                          resample=True, device=torch.device("cpu"), model="none", preprocessing=Preprocessing(),
+                          refinement=Refinement(), solver=SolverConfig(),
+                          progress=lambda stage, fraction: calls.append(stage))
+        assert result.bandwidth == 4 and type(result.bandwidth) is int and not result.refined
+        assert result.resampled is not None and calls[-1] == "done"
+
+
 class TestSmallVolumes:
     def test_a_few_voxels_across_still_refine(self):
         """The refinement's 4x-shrunk level would leave one voxel of a 6^3 volume (ITK's metric then fails)."""
@@ -446,11 +527,20 @@ class TestSmallVolumes:
         assert result.metric["dpc"] is not None and result.metric["refined"] is not None
         np.testing.assert_allclose(homogeneous_matrix(result.fixed_to_moving), np.eye(4), atol=1e-3)
 
-    @pytest.mark.parametrize(("device", "message"), [("tpu", "not valid|not supported"), ("cuda:0", "no CUDA GPU")])
+    @pytest.mark.parametrize(("device", "message"), [
+        ("tpu", "not valid|not supported"), ("cuda:0", "no CUDA GPU"), (None, r"device is None \(NoneType\)"),
+        (0, r"device is 0 \(int\); expected auto, cpu, cuda or cuda:N"), ("", "device '' is not valid")])
     def test_devices(self, device, message):
         import torch
 
-        if device.startswith("cuda") and torch.cuda.is_available():
+        if str(device).startswith("cuda") and torch.cuda.is_available():
             pytest.skip("a CUDA GPU is present")
         with pytest.raises(InputError, match=message):
             resolve_device(device)
+
+    def test_a_gpu_index_this_machine_lacks(self, monkeypatch):
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+        monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+        assert resolve_device(torch.device("cuda:0")) == torch.device("cuda:0")
+        with pytest.raises(InputError, match=r"'cuda:1' asked for, but this machine has 1 CUDA GPU; use cuda:0$"):
+            resolve_device("cuda:1")

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import fields
+
+import numpy as np
 import pytest
 import torch
 
@@ -12,6 +15,7 @@ from dpcn_med.solver.so3 import sphere_correlation
 from dpcn_med.solver.solve3d import _candidate_scores, _sphere
 from dpcn_med.solver.spectrum import magnitude_spectrum
 from dpcn_med.solver.sphere import quadrature_weights, sphere_directions
+from dpcn_med.solver.validation import check_bandwidth
 from dpcn_med.synth import random_poses
 from tests.conftest import volume_grid
 
@@ -39,11 +43,20 @@ class TestValidation:
         with pytest.raises(InputError, match="dtype torch.int64"):
             solve(torch.zeros(1, 1, 16, 16, 16, dtype=torch.long), torch.zeros(1, 1, 16, 16, 16, dtype=torch.long))
 
-    @pytest.mark.parametrize("bandwidth", [2, 9, 64, 3.5])
+    @pytest.mark.parametrize("bandwidth", [9, 64])
     def test_bandwidth_out_of_range(self, bandwidth):
         with pytest.raises(InputError, match=r"bandwidth .* is out of range: use an integer in \[4, 8\] \(half the "
                                              r"grid size 16\)"):
             solve(torch.zeros(1, 1, 16, 16, 16), torch.zeros(1, 1, 16, 16, 16), bandwidth=bandwidth)
+
+    def test_numpy_integer_bandwidth(self):
+        assert type(check_bandwidth(np.int64(4), 16)) is int
+        grid = torch.zeros(1, 1, 16, 16, 16)
+        assert solve(grid, grid, bandwidth=np.int64(4), refine=False).confidence.shape == (1,)
+
+    def test_empty_batch(self):
+        with pytest.raises(InputError, match=r"fixed holds no grids \(batch size 0"):
+            solve(torch.zeros(0, 1, 16, 16, 16), torch.zeros(0, 1, 16, 16, 16))
 
     def test_unknown_mode(self):
         with pytest.raises(InputError, match="mode 'affine' is not supported"):
@@ -51,6 +64,83 @@ class TestValidation:
 
     def test_input_errors_are_value_errors(self):
         assert issubclass(InputError, ValueError)
+
+
+class TestSolverConfig:
+    """Every field is checked on construction; the bad values below ran before (measured at B = 8): upsample 0 and a
+    rotation temperature 0 gave NaN poses, a reversed sphere band or NaN sphere_margin a pose without any error, the
+    others a ZeroDivisionError, an MKL or a reshape error from deep inside."""
+
+    def test_defaults_construct_unchanged(self):
+        config = SolverConfig()
+        assert all(getattr(config, field.name) == field.default for field in fields(SolverConfig))
+        assert StageTemperatures() == StageTemperatures(0.02, 0.02, 0.01)
+
+    def test_lists_and_numpy_values_are_normalised(self):
+        config = SolverConfig(bandwidth=np.int64(16), sphere_band=[0.1, 0.5], extra_sphere_bands=[[0.3, 0.9]],
+                              taper=np.float32(0.5), refine=np.bool_(False))
+        assert config == SolverConfig(bandwidth=16, sphere_band=(0.1, 0.5), extra_sphere_bands=((0.3, 0.9),),
+                                      taper=0.5, refine=False)
+        assert type(config.bandwidth) is int and type(config.refine) is bool
+
+    @pytest.mark.parametrize(("field", "value", "message"), [
+        ("bandwidth", 2, r"bandwidth is 2; expected an integer >= 4 and <= 128"),
+        ("bandwidth", 256, r"bandwidth is 256; expected an integer >= 4 and <= 128"),
+        ("bandwidth", 3.5, r"bandwidth is 3\.5 \(float\); expected an integer"),
+        ("bandwidth", True, r"bandwidth is True \(bool\)"),
+        ("upsample", 0, r"upsample is 0; expected an integer >= 1"),
+        ("peaks", 0, r"peaks is 0; expected an integer >= 1"),
+        ("finalists", 0, r"finalists is 0; expected an integer >= 1"),
+        ("candidate_size", 0, r"candidate_size is 0; expected an integer >= 8"),
+        ("scale_radii", 1, r"scale_radii is 1; expected an integer >= 2"),
+        ("scale_bandwidth", 0, r"scale_bandwidth is 0; expected an integer >= 1"),
+        ("refine_oversample", 0, r"refine_oversample is 0; expected an integer >= 1"),
+        ("refine_iterations", -1, r"refine_iterations is -1; expected an integer >= 0"),
+        ("rotation_half_width", -1, r"rotation_half_width is -1; expected an integer >= 0"),
+        ("alternatives", -1, r"alternatives is -1; expected an integer >= 0"),
+        ("peaks", 2.0, r"peaks is 2\.0 \(float\); expected an integer >= 1"),
+        ("taper", 1.5, r"taper is 1\.5; expected a finite number >= 0 and <= 1"),
+        ("taper", float("nan"), r"taper is nan; expected a finite number"),
+        ("max_scale", 1.0, r"max_scale is 1\.0; expected a finite number > 1"),
+        ("duplicate_degrees", float("nan"), r"duplicate_degrees is nan; expected a finite number >= 0 and <= 180"),
+        ("sphere_margin", float("inf"), r"sphere_margin is inf; expected a finite number >= 0"),
+        ("sphere_margin", "0.25", r"sphere_margin is '0\.25' \(str\); expected a finite number"),
+        ("sphere_band", (0.6, 0.05), r"sphere_band is \(0\.6, 0\.05\); expected \(low, high\) .* 0 < low < high <= 1"),
+        ("scale_band", (0.0, 0.8), r"scale_band is \(0\.0, 0\.8\); expected \(low, high\)"),
+        ("scale_band", (0.05, 1.5), r"scale_band is \(0\.05, 1\.5\); expected \(low, high\)"),
+        ("sphere_band", (0.1, 0.2, 0.3), r"sphere_band is \(0\.1, 0\.2, 0\.3\): 3 values; expected 2"),
+        ("sphere_band", "0.1-0.5", r"sphere_band is '0\.1-0\.5' \(str\); expected a tuple of 2 values"),
+        ("extra_sphere_bands", (0.3, 0.9), r"extra_sphere_bands\[0\] is 0\.3 \(float\); expected a tuple of 2"),
+        ("extra_sphere_bands", ((0.3, float("nan")),), r"extra_sphere_bands\[0\]\[1\] is nan"),
+        ("half_turns", "false", r"half_turns is 'false' \(str\); expected True or False"),
+        ("refine", 0, r"refine is 0 \(int\); expected True or False"),
+        ("log_magnitude", None, r"log_magnitude is None \(NoneType\); expected True or False"),
+        ("profile", "no", r"profile is 'no' \(str\); expected True or False"),
+    ])
+    def test_bad_values_are_refused(self, field, value, message):
+        with pytest.raises(InputError, match=message):
+            SolverConfig(**{field: value})
+
+    def test_solve_checks_its_overrides(self):
+        grid = torch.zeros(1, 1, 16, 16, 16)
+        with pytest.raises(InputError, match="upsample is 0"):
+            solve(grid, grid, upsample=0)
+
+    @pytest.mark.parametrize(("value", "message"), [
+        (0.0, r"rotation temperature is 0\.0; expected a finite number > 0"),
+        (-0.01, r"rotation temperature is -0\.01; expected a finite number > 0"),
+        (float("nan"), r"rotation temperature is nan"),
+        ("0.02", r"rotation temperature is '0\.02' \(str\)"),
+        (torch.tensor([]), r"rotation temperature is tensor\(\[\]\); expected a finite number > 0"),
+        (torch.tensor(1), r"rotation temperature is tensor\(1\)"),
+    ])
+    def test_bad_temperatures_are_refused(self, value, message):
+        with pytest.raises(InputError, match=message):
+            StageTemperatures(rotation=value)
+
+    def test_learned_temperatures_pass(self):
+        temperature = torch.tensor(0.05, requires_grad=True)
+        assert StageTemperatures(scale=temperature).scale is temperature
 
 
 class TestDegenerateInputs:

@@ -20,7 +20,18 @@ FORMAT = "dpcn_med.model/1"
 
 
 def model_paths(path: str | os.PathLike) -> tuple[Path, Path]:
-    """``(weights, config)`` for ``NAME``, ``NAME.safetensors`` or ``NAME.json``."""
+    """``(weights, config)`` for ``NAME``, ``NAME.safetensors`` or ``NAME.json``.
+
+    Raises:
+        InputError: ``path`` is not a ``str`` or path, is empty, or names a folder (``"."``, ``"runs/"``).
+    """
+    expected = "expected a model file: NAME, NAME.safetensors or NAME.json"
+    if not isinstance(path, (str, os.PathLike)) or isinstance(os.fspath(path), bytes):
+        raise InputError(f"model path is {path!r} ({type(path).__name__}); {expected}")
+    if not os.fspath(path):
+        raise InputError(f"model path is empty; {expected}")
+    if os.fspath(path).endswith(("/", os.sep)) or Path(path).name in ("", ".."):
+        raise InputError(f"model path {os.fspath(path)!r} names a folder, not a file; {expected}")
     path = Path(path)
     stem = path.with_suffix("") if path.suffix in (".safetensors", ".json") else path
     return stem.with_name(stem.name + ".safetensors"), stem.with_name(stem.name + ".json")
@@ -53,12 +64,13 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
 
     Raises:
         InputNotFoundError: either file is missing.
-        InputError: a pickled checkpoint, a config from something else or with unusable values, weights that do
-            not fit the config, integer weights where floats belong, or weights holding NaN or Inf.
+        InputError: not a model path (:func:`model_paths`), a pickled checkpoint, a config from something else or
+            with unusable values, weights that do not fit the config, integer weights where floats belong, or
+            weights holding NaN or Inf.
     """
+    weights, config = model_paths(path)
     if os.fspath(path).lower().endswith(io.PICKLE_SUFFIXES):
         io.read_tensors(path)  # raises its message about pickles
-    weights, config = model_paths(path)
     description = io.read_json(config)
     if not isinstance(description, dict) or description.get("format") != FORMAT:
         raise InputError(f"{config}: not a dpcn_med model config (format {FORMAT!r} expected)")

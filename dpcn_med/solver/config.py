@@ -9,6 +9,21 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequence
+from dpcn_med.errors import InputError
+from dpcn_med.solver.validation import MAX_BANDWIDTH
+
+_COUNT_MINIMUMS = {
+    "sphere_radii": 1, "peaks": 1, "rotation_half_width": 0, "refine_oversample": 1, "refine_iterations": 0,
+    "scale_bandwidth": 1, "scale_radii": 2, "candidate_size": 8, "finalists": 1, "finalist_size": 8,
+    "alternatives": 0, "upsample": 1, "log_polar_angles": 2, "log_polar_radii": 2, "iterations": 1,
+}
+"""Least value of each integer field of :class:`SolverConfig`: a log-spaced profile needs two radii (its step
+divides by ``count - 1``), a scored grid is a solver grid (at least 8), an empty top-k or an up-sampling by 0 gives
+empty tensors or NaN."""
+
+_FLAGS = ("log_magnitude", "half_turns", "refine", "profile")
+
 
 @dataclass(frozen=True)
 class SolverConfig:
@@ -83,6 +98,31 @@ class SolverConfig:
     iterations: int = 2
     profile: bool = False
 
+    def __post_init__(self) -> None:
+        """Check every field's type and range; store lists as tuples and numpy scalars as Python numbers.
+
+        Raises:
+            InputError: a value of the wrong type or out of range, named with the range expected.
+        """
+        checked = {name: check_integer(name, getattr(self, name), minimum=minimum)
+                   for name, minimum in _COUNT_MINIMUMS.items()}
+        checked.update({name: check_flag(name, getattr(self, name)) for name in _FLAGS})
+        if self.bandwidth is not None:
+            checked["bandwidth"] = check_integer("bandwidth", self.bandwidth, minimum=4, maximum=MAX_BANDWIDTH)
+        checked["taper"] = check_real("taper", self.taper, minimum=0.0, maximum=1.0)
+        checked["duplicate_degrees"] = check_real("duplicate_degrees", self.duplicate_degrees, minimum=0.0,
+                                                  maximum=180.0)
+        checked["sphere_margin"] = check_real("sphere_margin", self.sphere_margin, minimum=0.0)
+        checked["max_scale"] = check_real("max_scale", self.max_scale, minimum=1.0, above=True)
+        for name in ("sphere_band", "scale_band", "log_polar_band"):
+            checked[name] = _band(name, getattr(self, name))
+        checked["extra_sphere_bands"] = tuple(
+            _band(f"extra_sphere_bands[{index}]", band)
+            for index, band in enumerate(check_sequence("extra_sphere_bands", self.extra_sphere_bands,
+                                                        nonempty=False)))
+        for name, value in checked.items():
+            object.__setattr__(self, name, value)  # frozen: the normalised value replaces the given one
+
 
 @dataclass
 class StageTemperatures:
@@ -97,6 +137,40 @@ class StageTemperatures:
     rotation: Tensor | float = 0.02
     scale: Tensor | float = 0.02
     translation: Tensor | float = 0.01
+
+    def __post_init__(self) -> None:
+        """Check that each temperature is a positive finite number (a softmax divides by it: 0 gave NaN poses) or a
+        floating-point tensor.
+
+        Raises:
+            InputError: a temperature that is not a positive finite number or floating-point tensor.
+        """
+        for name in ("rotation", "scale", "translation"):
+            setattr(self, name, _temperature(f"{name} temperature", getattr(self, name)))
+
+
+def _band(name: str, value: object) -> tuple[float, float]:
+    """``(low, high)`` radii as fractions of the Nyquist radius, ``0 < low < high <= 1`` (beyond 1 a ray leaves
+    the spectrum along the axes, and the log spacing needs ``low > 0``)."""
+    low, high = (check_real(f"{name}[{index}]", item)
+                 for index, item in enumerate(check_sequence(name, value, length=2)))
+    if not 0.0 < low < high <= 1.0:
+        raise InputError(f"{name} is {(low, high)!r}; expected (low, high) fractions of the Nyquist radius with "
+                         "0 < low < high <= 1")
+    return low, high
+
+
+def _temperature(name: str, value: object) -> Tensor | float:
+    """``value`` if it is a positive finite float, or a non-empty floating-point tensor.
+
+    A tensor's values are not read: that would synchronise a GPU on every training step, and :class:`Temperatures`
+    keeps its own positive through a softplus.
+    """
+    if not isinstance(value, Tensor):
+        return check_real(name, value, minimum=0.0, above=True)
+    if not value.is_floating_point() or value.numel() == 0:
+        raise InputError(f"{name} is {value!r}; expected a finite number > 0 (a float or a floating-point tensor)")
+    return value
 
 
 def _inverse_softplus(value: float) -> float:

@@ -55,7 +55,7 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
         A :class:`Solve2dResult` with ``fixed(p) ~ moving(scale * rotation @ p + translation)``.
 
     Raises:
-        InputError: malformed grids or an unknown mode.
+        InputError: malformed grids, an unknown mode, or a setting or temperature out of range.
 
     Notes:
         Rotation and scale come from one correlation of the log-polar magnitude spectra, which is
@@ -79,7 +79,7 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
     scale = fixed.new_ones(batch)
     translation = fixed.new_zeros(batch, 2)
     first = None
-    for iteration in range(max(config.iterations, 1)):
+    for iteration in range(config.iterations):
         current = moving[:, 0] if iteration == 0 else warp(moving, scale[:, None, None] * rotation_2d(angle),
                                                           translation)[:, 0]
         estimate = log_polar_rotation_scale(fixed_magnitude, magnitude_spectrum(current, 2, config.taper),

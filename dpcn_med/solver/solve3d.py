@@ -190,7 +190,8 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         A :class:`SolveResult` with ``fixed(p) ~ moving(scale * rotation @ p + translation)``.
 
     Raises:
-        InputError: malformed grids (shape, size, dtype, NaN/Inf), a bandwidth out of range or an unknown mode.
+        InputError: malformed grids (shape, size, dtype, NaN/Inf, empty batch), a bandwidth out of range, an unknown
+            mode, or a setting or temperature out of range.
 
     Convention:
         Voxel coordinates ``(x, y, z)`` from the grid centre, ZYZ Euler grid and pull resampling, all as in

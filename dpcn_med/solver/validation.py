@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 from torch import Tensor
 
@@ -19,7 +21,7 @@ def check_grids(fixed: Tensor, moving: Tensor, dim: int) -> int:
         dim: 2 or 3.
 
     Raises:
-        InputError: wrong rank, channels, non-square or odd size, mismatch, non-float dtype, NaN or Inf.
+        InputError: wrong rank, an empty batch, channels, non-square or odd size, mismatch, non-float dtype, NaN or Inf.
     """
     layout = "(B, 1, N, N, N)" if dim == 3 else "(B, 1, N, N)"
     other = "solve2d" if dim == 3 else "solve"
@@ -29,6 +31,8 @@ def check_grids(fixed: Tensor, moving: Tensor, dim: int) -> int:
         if grid.dim() != dim + 2:
             raise InputError(f"{name} has shape {tuple(grid.shape)}; expected {layout} (for the other dimension use "
                              f"{other})")
+        if grid.shape[0] == 0:
+            raise InputError(f"{name} holds no grids (batch size 0, shape {tuple(grid.shape)}); expected at least one")
         if grid.shape[1] != 1:
             raise InputError(f"{name} has {grid.shape[1]} channels (shape {tuple(grid.shape)}); expected 1")
         sizes = tuple(grid.shape[2:])
@@ -52,6 +56,8 @@ def check_bandwidth(bandwidth: int | None, size: int) -> int:
     """The bandwidth to use for grids of size ``size``: ``size // 2`` by default, else ``4 <= B <= size // 2, 128``."""
     if bandwidth is None:
         bandwidth = size // 2
+    if isinstance(bandwidth, numbers.Integral) and not isinstance(bandwidth, bool):
+        bandwidth = int(bandwidth)  # numpy integers too
     top = min(size // 2, MAX_BANDWIDTH)
     if not isinstance(bandwidth, int) or not 4 <= bandwidth <= top:
         limit = f" (half the grid size {size})" if top < MAX_BANDWIDTH else ""

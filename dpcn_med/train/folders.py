@@ -59,8 +59,6 @@ IMAGE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
 """Image files a pair folder may hold (besides DICOM folders)."""
 TRUTH_SUFFIXES = (".tfm", ".h5", ".hdf5", ".standard")
 """Ground-truth files: ITK transforms and RIRE ``.standard`` files (``.txt`` is left out: it is usually notes)."""
-SIMILARITY_TOLERANCE = 1e-4
-"""Largest ``|M^T M / mu^2 - I|`` entry of a linear part ``M`` accepted as a similarity ``mu R``."""
 RIGID_FIT_TOLERANCE_MM = 0.5
 """Largest distance (mm) between a RIRE "To" point and the fitted rigid image of its "From" point."""
 
@@ -250,17 +248,8 @@ def _similarity_matrix(transform: sitk.Transform, source: str) -> np.ndarray:
         matrix = homogeneous_matrix(transform)
     except ValueError as error:
         raise InputError(f"{source}: {error}; the ground truth must be rigid or a similarity") from None
-    linear = matrix[:3, :3]
-    determinant = np.linalg.det(linear)
-    if determinant <= 0:
-        problem = "reflects (determinant <= 0)"
-    elif np.abs(linear.T @ linear / np.cbrt(determinant) ** 2 - np.eye(3)).max() > SIMILARITY_TOLERANCE:
-        shown = ", ".join(f"{s:.6g}" for s in np.linalg.svd(linear, compute_uv=False))
-        problem = f"has shear or anisotropic scale (singular values {shown})"
-    else:
-        return matrix
-    raise InputError(f"{source}: {transform.GetName()} is not a similarity: its linear part {problem}; the ground "
-                         "truth must be rigid or a similarity (rotation, isotropic scale, translation)")
+    scale_and_rotation(matrix[:3, :3], f"{source}: {transform.GetName()}")  # raises naming the problem
+    return matrix
 
 
 def pose_on_grids(fixed_to_moving: sitk.Transform, fixed_grid: CanonicalGrid, moving_grid: CanonicalGrid
