@@ -90,7 +90,8 @@ def table(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--poses", type=int, default=100)
-    parser.add_argument("--bandwidths", nargs="+", type=int, default=[32, 64])
+    parser.add_argument("--bandwidths", nargs="+", type=int, default=[32, 64], choices=sorted(THRESHOLDS),
+                        help="the bandwidths the solver issue sets thresholds for")
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "solver_accuracy.md")
     args = parser.parse_args(argv)
     torch.set_grad_enabled(False)
