@@ -12,7 +12,7 @@ import SimpleITK as sitk
 import torch
 from torch import Tensor
 
-from dpcn_med.arguments import check_integer, check_real, check_sequence
+from dpcn_med.arguments import check_integer, check_pair, check_real
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import CanonicalGrid
 
@@ -57,23 +57,13 @@ class Preprocessing:
             "fill": check_real("fill", self.fill, minimum=0.1, maximum=1.0),
             "outline_weight": check_real("outline_weight", self.outline_weight, minimum=0.0, maximum=1.0),
             "max_voxels": check_integer("max_voxels", self.max_voxels, minimum=1000),
-            "percentiles": _increasing_pair("percentiles", self.percentiles, 0.0, 100.0),
-            "ct_window": _increasing_pair("ct_window", self.ct_window),
+            "percentiles": check_pair("percentiles", self.percentiles, minimum=0.0, maximum=100.0),
+            "ct_window": check_pair("ct_window", self.ct_window),
             "ct_detection_hu": check_real("ct_detection_hu", self.ct_detection_hu),
         }
         for name, value in checked.items():
             object.__setattr__(self, name, value)
 
-
-def _increasing_pair(name: str, value: object, minimum: float | None = None, maximum: float | None = None
-                     ) -> tuple[float, float]:
-    """``value`` as ``(low, high)``: two finite numbers within the bounds, ``low < high``."""
-    low, high = check_sequence(name, value, length=2)
-    low = check_real(f"{name}[0]", low, minimum=minimum, maximum=maximum)
-    high = check_real(f"{name}[1]", high, minimum=minimum, maximum=maximum)
-    if low >= high:
-        raise InputError(f"{name} is {value!r}; expected (low, high) with low < high")
-    return low, high
 
 
 def foreground_mask(image: sitk.Image) -> sitk.Image:

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequence
+from dpcn_med.arguments import check_flag, check_integer, check_pair, check_real, check_sequence
 from dpcn_med.errors import InputError
 
 
@@ -129,3 +129,23 @@ class TestCheckSequence:
         assert check_sequence("channels", [8, 16, 32]) == (8, 16, 32)
         with pytest.raises(InputError, match=r"^channels is 'abc' \(str\); expected a tuple$"):
             check_sequence("channels", "abc")
+
+
+class TestCheckPair:
+    def test_accepts_an_increasing_pair(self):
+        assert check_pair("window", [np.int16(-1000), 1000.5]) == (-1000.0, 1000.5)
+        assert check_pair("band", (0.05, 1), minimum=0, maximum=1, above=True) == (0.05, 1.0)
+
+    @pytest.mark.parametrize(("value", "options", "message"), [
+        ((2, 1), {}, r"^window is \(2\.0, 1\.0\); expected \(low, high\) with low < high$"),
+        ((1, 1), {}, r"^window is \(1\.0, 1\.0\); expected \(low, high\) with low < high$"),
+        ((0, 0.5), {"minimum": 0, "maximum": 1, "above": True, "note": " (fractions)"},
+         r"^window is \(0\.0, 0\.5\); expected \(low, high\) with 0 < low < high <= 1 \(fractions\)$"),
+        ((-1, 50), {"minimum": 0, "maximum": 100}, r"with 0 <= low < high <= 100$"),
+        ((1, 101), {"minimum": 0, "maximum": 100}, r"with 0 <= low < high <= 100$"),
+        ((1, float("inf")), {}, r"^window\[1\] is inf; expected a finite number$"),
+        ((1,), {}, r"^window is \(1,\): 1 values; expected 2$"),
+    ])
+    def test_refusals(self, value, options, message):
+        with pytest.raises(InputError, match=message):
+            check_pair("window", value, **options)

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequence
+from dpcn_med.arguments import check_flag, check_integer, check_pair, check_real, check_sequence
 from dpcn_med.errors import InputError
 from dpcn_med.solver.validation import MAX_BANDWIDTH
 
@@ -152,12 +152,7 @@ class StageTemperatures:
 def _band(name: str, value: object) -> tuple[float, float]:
     """``(low, high)`` radii as fractions of the Nyquist radius, ``0 < low < high <= 1`` (beyond 1 a ray leaves
     the spectrum along the axes, and the log spacing needs ``low > 0``)."""
-    low, high = (check_real(f"{name}[{index}]", item)
-                 for index, item in enumerate(check_sequence(name, value, length=2)))
-    if not 0.0 < low < high <= 1.0:
-        raise InputError(f"{name} is {(low, high)!r}; expected (low, high) fractions of the Nyquist radius with "
-                         "0 < low < high <= 1")
-    return low, high
+    return check_pair(name, value, minimum=0.0, maximum=1.0, above=True, note=" (fractions of the Nyquist radius)")
 
 
 def _temperature(name: str, value: object) -> Tensor | float:
