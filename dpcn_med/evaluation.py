@@ -7,6 +7,7 @@ import numpy as np
 import SimpleITK as sitk
 from numpy.typing import ArrayLike
 
+from dpcn_med.arguments import shown
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import homogeneous_matrix, scale_and_rotation
 from dpcn_med.preprocess import foreground_mask
@@ -76,7 +77,7 @@ def target_registration_error(estimate: sitk.Transform, truth: sitk.Transform, p
     try:
         array = np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError):  # ragged lists, strings
-        raise InputError(f"points is {points!r:.80} ({type(points).__name__}); expected (K, 3) numbers") from None
+        raise InputError(f"points is {shown(points)}; expected (K, 3) numbers") from None
     if array.ndim != 2 or array.shape[1] != 3 or array.shape[0] == 0:
         raise InputError(f"points has shape {array.shape}; expected (K, 3) with at least one point")
     if not np.isfinite(array).all():

@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 
 from dpcn_med import io
+from dpcn_med.arguments import shown
 from dpcn_med.errors import InputError
 from dpcn_med.models.dpcn import DPCN, ModelConfig
 
@@ -27,7 +28,7 @@ def model_paths(path: str | os.PathLike) -> tuple[Path, Path]:
     """
     expected = "expected a model file: NAME, NAME.safetensors or NAME.json"
     if not isinstance(path, (str, os.PathLike)) or isinstance(os.fspath(path), bytes):
-        raise InputError(f"model path is {path!r} ({type(path).__name__}); {expected}")
+        raise InputError(f"model path is {shown(path)}; {expected}")
     if not os.fspath(path):
         raise InputError(f"model path is empty; {expected}")
     if os.fspath(path).endswith(("/", os.sep)) or Path(path).name in ("", ".."):
