@@ -3,7 +3,8 @@
 For each volume of ../shared/data, ``--trials`` random similarity transforms (rotation uniform over SO(3), shift up to
 40 mm, scale 0.85-1.15 in similarity mode) move an exact copy of the volume (:func:`dpcn_med.evaluation.moved_copy`);
 ``dpcn_med.register`` recovers them from scratch. Target registration error (TRE): mean over the 8 corners of the
-fixed foreground box. Criteria of the command-line issue: TRE below 2 canonical-grid voxels before refinement, below
+fixed foreground box. Criteria of the command-line issue: TRE below 2 canonical-grid voxels before refinement (the
+phase-correlation candidate the refinement started from; the solver's own choice where the stored pose won), below
 1 mm after, in at least 95% of trials. A multimodal row registers the seg3d MR to a pseudo-CT made from it and its
 masks (:func:`dpcn_med.synth.pseudo_ct`), learning-free.
 
@@ -59,10 +60,14 @@ def run_case(fixed: sitk.Image, source: sitk.Image, mode: str, trials: int, seed
     before, after, voxel, solve_ms, total_s = [], [], [], [], []
     for _ in range(trials):
         truth = random_similarity(rng, centre, max_shift_mm=40.0, scale_range=scales)
+        moving = moved_copy(source, truth)
         start = time.perf_counter()
-        result = register(fixed, moved_copy(source, truth), mode=mode)
+        result = register(fixed, moving, mode=mode)
         total_s.append(time.perf_counter() - start)
-        before.append(target_registration_error(result.dpc_transform, truth, corners))
+        estimate = result.dpc_transform
+        if result.start == "stored pose":  # the identity is no global estimate: take the solver's own choice
+            estimate = register(fixed, moving, mode=mode, refine=False).dpc_transform
+        before.append(target_registration_error(estimate, truth, corners))
         after.append(target_registration_error(result.fixed_to_moving, truth, corners))
         voxel.append(result.fixed_grid.spacing)
         solve_ms.append(result.timings["solve"] * 1000)
