@@ -23,6 +23,7 @@ import torch
 from dpcn_med import io
 from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequence, shown
 from dpcn_med.errors import InputError
+from dpcn_med.evaluation import target_registration_error
 from dpcn_med.geometry import (
     CanonicalGrid,
     homogeneous_matrix,
@@ -668,24 +669,23 @@ def refine_candidates(pyramid: list[tuple[sitk.Image, sitk.Image]], candidates: 
 def _merge_same_poses(scored: list[tuple[float, int, sitk.Transform]], fixed: sitk.Image
                       ) -> list[tuple[float, int, sitk.Transform]]:
     """``scored`` (metric, start index, refined transform; best metric first) with the starts that reached one pose
-    (within a voxel of ``fixed`` at each of its corners) merged: at the best metric's place, the lowest start index
-    and its transform. Between two starts that found one optimum the metric differs by sampling noise; the solver's
-    ranking decides instead, and the stored pose last. Without this, the stored pose won such ties (an MRI-DIR CT
-    round trip: both -1.33), and the report named the identity as the start, with its own low confidence."""
+    (within a voxel of ``fixed``, on average over its corners) merged: at the best metric's place, the lowest start
+    index and its transform. Between two starts that found one optimum the metric differs by sampling noise; the
+    solver's ranking decides instead, and the stored pose last. Without this, the stored pose won such ties (an
+    MRI-DIR CT round trip: both -1.33), and the report named the identity as the start, with its own low confidence."""
     ends = np.asarray(fixed.GetSize()) - 1
-    corners = np.array([[*fixed.TransformContinuousIndexToPhysicalPoint((ends * np.asarray(corner)).tolist()), 1.0]
-                        for corner in np.ndindex(2, 2, 2)])
+    corners = [fixed.TransformContinuousIndexToPhysicalPoint((ends * np.asarray(corner)).tolist())
+               for corner in np.ndindex(2, 2, 2)]
     tolerance = max(fixed.GetSpacing())
-    merged: list[tuple[float, int, sitk.Transform, np.ndarray]] = []
+    merged: list[tuple[float, int, sitk.Transform]] = []
     for value, index, transform in scored:
-        points = corners @ homogeneous_matrix(transform).T
-        same = next((place for place, (_, _, _, other) in enumerate(merged) if math.isfinite(value)
-                     and np.linalg.norm(points - other, axis=1).max() < tolerance), None)
+        same = next((place for place, (_, _, other) in enumerate(merged) if math.isfinite(value)
+                     and target_registration_error(transform, other, corners) < tolerance), None)
         if same is None:
-            merged.append((value, index, transform, points))
+            merged.append((value, index, transform))
         elif index < merged[same][1]:
-            merged[same] = (merged[same][0], index, transform, points)
-    return [(value, index, transform) for value, index, transform, _ in merged]
+            merged[same] = (merged[same][0], index, transform)
+    return merged
 
 
 def refine_transform(fixed: sitk.Image, moving: sitk.Image, initial: sitk.Transform,
