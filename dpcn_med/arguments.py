@@ -93,15 +93,17 @@ def check_sequence(name: str, value: Any, *, length: int | None = None, nonempty
 
 
 def check_pair(name: str, value: Any, *, minimum: float | None = None, maximum: float | None = None,
-               above: bool = False, note: str = "") -> tuple[float, float]:
-    """``value`` as ``(low, high)``: two finite numbers, ``low < high``, within the bounds (``above``: the minimum
-    exclusive); ``note`` ends the message, e.g. what the numbers are."""
+               above: bool = False, equal: bool = False, note: str = "") -> tuple[float, float]:
+    """``value`` as ``(low, high)``: two finite numbers, ``low < high`` (``equal``: ``low <= high``, as a range to
+    draw from may hold one value), within the bounds (``above``: the minimum exclusive); ``note`` ends the message,
+    e.g. what the numbers are."""
     low, high = (check_real(f"{name}[{index}]", item)
                  for index, item in enumerate(check_sequence(name, value, length=2)))
     too_low = minimum is not None and (low <= minimum if above else low < minimum)
     too_high = maximum is not None and high > maximum
-    if too_low or too_high or low >= high:
+    if too_low or too_high or (low > high if equal else low >= high):
         start = "" if minimum is None else f"{_number(minimum)} {'<' if above else '<='} "
         end = "" if maximum is None else f" <= {_number(maximum)}"
-        raise InputError(f"{name} is {(low, high)!r}; expected (low, high) with {start}low < high{end}{note}")
+        order = "<=" if equal else "<"
+        raise InputError(f"{name} is {(low, high)!r}; expected (low, high) with {start}low {order} high{end}{note}")
     return low, high

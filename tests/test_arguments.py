@@ -136,6 +136,9 @@ class TestCheckPair:
         assert check_pair("window", [np.int16(-1000), 1000.5]) == (-1000.0, 1000.5)
         assert check_pair("band", (0.05, 1), minimum=0, maximum=1, above=True) == (0.05, 1.0)
 
+    def test_equal_accepts_one_value(self):
+        assert check_pair("sigma_range", (0.5, 0.5), minimum=0, equal=True) == (0.5, 0.5)
+
     @pytest.mark.parametrize(("value", "options", "message"), [
         ((2, 1), {}, r"^window is \(2\.0, 1\.0\); expected \(low, high\) with low < high$"),
         ((1, 1), {}, r"^window is \(1\.0, 1\.0\); expected \(low, high\) with low < high$"),
@@ -144,6 +147,10 @@ class TestCheckPair:
         ((-1, 50), {"minimum": 0, "maximum": 100}, r"with 0 <= low < high <= 100$"),
         ((1, 101), {"minimum": 0, "maximum": 100}, r"with 0 <= low < high <= 100$"),
         ((1, float("inf")), {}, r"^window\[1\] is inf; expected a finite number$"),
+        ((1, float("inf")), {"equal": True}, r"^window\[1\] is inf; expected a finite number$"),
+        ((2, 1), {"minimum": 0, "equal": True},
+         r"^window is \(2\.0, 1\.0\); expected \(low, high\) with 0 <= low <= high$"),
+        ((0, 1), {"minimum": 0, "maximum": 1, "above": True, "equal": True}, r"with 0 < low <= high <= 1$"),
         ((1,), {}, r"^window is \(1,\): 1 values; expected 2$"),
     ])
     def test_refusals(self, value, options, message):

@@ -151,8 +151,12 @@ class TestBlur:
         torch.testing.assert_close(blur(volume, _seeded(0), sigma_range=(0.0, 0.0)), volume, atol=1e-12, rtol=0)
 
     def test_negative_sigma(self):
-        with pytest.raises(InputError, match=r"sigma_range is \(-1.0, 1.0\); expected \(low, high\) with 0.0 <= low"):
+        with pytest.raises(InputError, match=r"sigma_range is \(-1.0, 1.0\); expected \(low, high\) with 0 <= low"):
             blur(_ramp(1), _seeded(0), sigma_range=(-1.0, 1.0))
+
+    def test_unbounded_sigma(self):  # a range to draw from must be finite
+        with pytest.raises(InputError, match=r"^sigma_range\[1\] is inf; expected a finite number$"):
+            blur(_ramp(1), _seeded(0), sigma_range=(0.0, math.inf))
 
 
 def _high_frequency_share(volume: torch.Tensor, axis: int) -> torch.Tensor:
@@ -185,7 +189,7 @@ class TestResolutionLoss:
         torch.testing.assert_close(out, volume.expand(3, -1, -1, -1, -1), atol=1e-12, rtol=0)
 
     def test_factor_below_one(self):
-        with pytest.raises(InputError, match=r"factor_range is \(0.5, 2.0\); expected \(low, high\) with 1.0 <= low"):
+        with pytest.raises(InputError, match=r"factor_range is \(0.5, 2.0\); expected \(low, high\) with 1 <= low"):
             resolution_loss(_ramp(1), _seeded(0), factor_range=(0.5, 2.0))
 
 

@@ -162,7 +162,8 @@ class TestInvalidArguments:
     @pytest.mark.parametrize("options,message", [
         ({"mode": "affine"}, "mode 'affine' is not supported; use one of similarity, rigid"),
         ({"fixed_modality": "mr"}, "fixed_modality 'mr' is not supported; use one of random, identity, ultrasound"),
-        ({"scale_range": (0.0, 1.0)}, r"scale_range is \(0.0, 1.0\); expected \(low, high\) with 0 < low"),
+        ({"scale_range": (0.0, 1.0)}, r"scale_range is \(0.0, 1.0\); expected \(low, high\) with 0 < low <= high$"),
+        ({"scale_range": (1.0, "2")}, r"scale_range\[1\] is '2' \(str\); expected a finite number$"),
         ({"crop_probability": 1.5}, r"crop_probability is 1.5; expected a probability in \[0, 1\]"),
     ])
     def test_bad_configuration(self, options, message):

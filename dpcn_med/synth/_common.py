@@ -25,12 +25,6 @@ def check_volumes(name: str, volumes: Tensor, *, cubic: bool = False) -> int:
     return volumes.shape[2]
 
 
-def check_range(name: str, bounds: tuple[float, float], low: float, high: float) -> None:
-    """Refuse an interval ``bounds`` that is reversed or leaves ``[low, high]``."""
-    if not low <= bounds[0] <= bounds[1] <= high:
-        raise InputError(f"{name} is {tuple(bounds)}; expected (low, high) with {low} <= low <= high <= {high}")
-
-
 def uniform(generator: torch.Generator, shape: tuple[int, ...], low: float, high: float, *, like: Tensor) -> Tensor:
     """Uniform draws in ``[low, high)`` of ``shape``, on ``like``'s device and dtype."""
     draws = torch.rand(shape, generator=generator, device=generator.device, dtype=like.dtype)

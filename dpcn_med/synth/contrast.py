@@ -15,8 +15,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from dpcn_med.arguments import check_pair
 from dpcn_med.errors import InputError
-from dpcn_med.synth._common import check_range, check_volumes, integers, normal, uniform
+from dpcn_med.synth._common import check_volumes, integers, normal, uniform
 
 
 @dataclass(frozen=True)
@@ -155,7 +156,7 @@ def blur(volume: Tensor, generator: torch.Generator, *,
         ``(B, 1, D, H, W)``; zero padding, so the background far from the foreground stays 0.
     """
     check_volumes("volume", volume)
-    check_range("sigma_range", sigma_range, 0.0, math.inf)
+    check_pair("sigma_range", sigma_range, minimum=0.0, equal=True)
     return _gaussian_blur(volume, uniform(generator, (volume.shape[0],), *sigma_range, like=volume))
 
 
@@ -172,7 +173,7 @@ def resolution_loss(volume: Tensor, generator: torch.Generator, *,
         ``(B, 1, D, H, W)``; unchanged along the two other axes.
     """
     check_volumes("volume", volume)
-    check_range("factor_range", factor_range, 1.0, math.inf)
+    check_pair("factor_range", factor_range, minimum=1.0, equal=True)
     batch = volume.shape[0]
     factors = uniform(generator, (batch,), *factor_range, like=volume).tolist()
     axes = integers(generator, 3, batch)
@@ -206,7 +207,7 @@ def noise(volume: Tensor, generator: torch.Generator, *,
     """
     # Written out rather than MONAI's RandGaussianNoise / RandRicianNoise: those draw from numpy on the host.
     check_volumes("volume", volume)
-    check_range("std_range", std_range, 0.0, math.inf)
+    check_pair("std_range", std_range, minimum=0.0, equal=True)
     std = _per_sample(uniform(generator, (volume.shape[0],), *std_range, like=volume))
     real = volume + std * normal(generator, tuple(volume.shape), like=volume)
     if not rician:

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from dpcn_med.arguments import check_pair
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import random_rotation, warp
 from dpcn_med.solver import PoseTarget
@@ -63,11 +64,9 @@ class PairConfig:
             raise InputError(f"mode {self.mode!r} is not supported; use one of {', '.join(_MODES)}")
         _check_modality("fixed_modality", self.fixed_modality)
         _check_modality("moving_modality", self.moving_modality)
-        if not (self.overlap_range[0] > 0 and self.overlap_range[0] <= self.overlap_range[1] <= 1):
-            raise InputError(f"overlap_range is {tuple(self.overlap_range)}; expected (low, high) with "
-                             "0 < low <= high <= 1, the fraction of the foreground the fixed volume keeps")
-        if not 0 < self.scale_range[0] <= self.scale_range[1]:
-            raise InputError(f"scale_range is {tuple(self.scale_range)}; expected (low, high) with 0 < low <= high")
+        check_pair("overlap_range", self.overlap_range, minimum=0.0, maximum=1.0, above=True, equal=True,
+                   note=" (the fraction of the foreground the fixed volume keeps)")
+        check_pair("scale_range", self.scale_range, minimum=0.0, above=True, equal=True)
         if not 0 <= self.crop_probability <= 1:
             raise InputError(f"crop_probability is {self.crop_probability}; expected a probability in [0, 1]")
         if not 0 <= self.max_shift_fraction < math.inf:

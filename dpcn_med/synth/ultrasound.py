@@ -8,9 +8,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from dpcn_med.arguments import check_pair
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import affine_points, grid_centre, sample
-from dpcn_med.synth._common import check_range, check_volumes, normal, uniform
+from dpcn_med.synth._common import check_volumes, normal, uniform
 
 
 @dataclass(frozen=True)
@@ -112,8 +113,8 @@ def simulated_ultrasound(ct: Tensor, generator: torch.Generator, *, probe: Tenso
         depth, as with a real probe) and the echoes are resampled back onto the grid.
     """
     size = check_volumes("ct", ct, cubic=True)
-    check_range("half_angle_degrees", config.half_angle_degrees, 0.0, 89.0)
-    check_range("depth_range", config.depth_range, 0.0, math.inf)
+    check_pair("half_angle_degrees", config.half_angle_degrees, minimum=0.0, maximum=89.0, equal=True)
+    check_pair("depth_range", config.depth_range, minimum=0.0, equal=True)
     foreground = ct[:, 0] > 0
     if not bool(foreground.flatten(1).any(-1).all()):
         raise InputError("ct contains an empty volume (no voxel above 0); the probe needs an object to image")

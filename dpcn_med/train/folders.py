@@ -44,6 +44,7 @@ from scipy.spatial.transform import Rotation
 from torch import Tensor
 
 from dpcn_med import io
+from dpcn_med.arguments import check_pair
 from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.geometry import CanonicalGrid, homogeneous_matrix, scale_and_rotation, similarity_transform
 from dpcn_med.preprocess import PreparedImage, Preprocessing, pair_grids, prepare, resample_to_grid, to_tensor
@@ -324,9 +325,9 @@ def load_pair(files: PairFiles, bandwidth: int, preprocessing: Preprocessing | N
 
 def check_crop(crop: tuple[float, float] | None, name: str = "crop") -> None:
     """Refuse a slab crop that is neither ``None`` nor ``(low, high)`` with ``0 < low <= high <= 1``."""
-    if crop is not None and not 0 < crop[0] <= crop[1] <= 1:
-        raise InputError(f"{name} is {tuple(crop)}; expected (low, high) with 0 < low <= high <= 1, the fraction "
-                         "of the fixed foreground kept, or None for no crop")
+    if crop is not None:
+        check_pair(name, crop, minimum=0.0, maximum=1.0, above=True, equal=True,
+                   note=" (the fraction of the fixed foreground kept), or None for no crop")
 
 
 class FolderPairs(torch.utils.data.Dataset):
