@@ -533,6 +533,9 @@ def _scan_nifti(path: Path, compressed: bool, offset: int, dtype: np.dtype | Non
                 infinite += int(np.isinf(values).sum())
                 pending = data[whole:]
     except EOFError:
+        if needed and found >= needed:  # the voxels are all there, the stream's end (its checksum) is not
+            raise _truncated(path, f"its compressed stream breaks off after {found:,} bytes, all the {needed:,} the "
+                                   "header needs but before its end") from None
         detail = f"of the {needed:,} bytes the header needs" if needed else "before the end of its header"
         raise _truncated(path, f"its compressed stream ends after {found:,} bytes, {detail}") from None
     except (zlib.error, gzip.BadGzipFile) as error:
@@ -709,6 +712,7 @@ def write_image(image: sitk.Image, path: str | os.PathLike, *, compress: bool = 
 
     Raises:
         InputError: another suffix, or the folder does not exist.
+        OSError: the file came out short (a full disk, a file-size limit); ``path`` is left as it was.
     """
     target = Path(path)
     if not target.name.lower().endswith(IMAGE_WRITE_SUFFIXES):
@@ -716,15 +720,45 @@ def write_image(image: sitk.Image, path: str | os.PathLike, *, compress: bool = 
                          "(.mhd and .nhdr keep the voxels in a second file, which one rename cannot move)")
     with atomic_output(target) as temporary:
         sitk.WriteImage(image, str(temporary), useCompression=compress)
+        _check_written(target, lambda: _check_complete(temporary))
 
 
 def write_transform(transform: sitk.Transform, path: str | os.PathLike) -> None:
-    """Write ``transform`` atomically as .tfm or .txt (text) or .h5 / .hdf5 (HDF5); Slicer and ITK read all."""
+    """Write ``transform`` atomically as .tfm or .txt (text) or .h5 / .hdf5 (HDF5); Slicer and ITK read all.
+
+    Raises:
+        InputError: another suffix, or the folder does not exist.
+        OSError: the file came out short (a full disk, a file-size limit); ``path`` is left as it was.
+    """
     target = Path(path)
     if not target.name.lower().endswith(TRANSFORM_SUFFIXES):
         raise InputError(f"{target}: cannot write a transform with this suffix; use {', '.join(TRANSFORM_SUFFIXES)}")
     with atomic_output(target) as temporary:
         sitk.WriteTransform(transform, str(temporary))
+        _check_written(target, lambda: _check_same_transform(temporary, transform))
+
+
+def _check_written(target: Path, check: Callable[[], None]) -> None:
+    """Run ``check`` on the file just written for ``target``; raise ``OSError`` if it finds the file short.
+
+    ITK's NIfTI and text-transform writers report a full disk or a file-size limit on stderr only and return as if
+    all went well (measured with ``ulimit -f``: a cut .nii.gz, .nii and .tfm, no exception; the NRRD, MetaImage and
+    HDF5 writers raise), so what they wrote is read back before it replaces anything.
+    """
+    try:
+        check()
+    except InputError as error:
+        raise OSError(f"{target}: writing it failed: the file came out incomplete (is the disk full, or a file-size "
+                      "limit set?); nothing was written") from error
+
+
+def _check_same_transform(path: Path, transform: sitk.Transform) -> None:
+    """Raise ``InputError`` if ``path`` does not read back as ``transform``'s parameters (to text precision)."""
+    written = read_transform(path)
+    for found, expected in ((written.GetParameters(), transform.GetParameters()),
+                            (written.GetFixedParameters(), transform.GetFixedParameters())):
+        if len(found) != len(expected) or not np.allclose(found, expected, rtol=1e-9, atol=1e-12):
+            raise InputError(f"{path}: holds other parameters than the transform written")
 
 
 def write_json(data: Any, path: str | os.PathLike) -> None:

@@ -648,6 +648,37 @@ class TestWriteTransform:
             io.write_transform(similarity(), tmp_path / "t.mat")
 
 
+@pytest.mark.skipif(sys.platform == "win32", reason="file-size limits (RLIMIT_FSIZE) are POSIX")
+class TestShortWrite:
+    """A file-size limit makes ITK's NIfTI and text-transform writers stop short and return as if all went well."""
+
+    # Not .h5: the HDF5 writer raises, but its library then crashes the process at exit under the limit (measured).
+    @pytest.mark.parametrize("name", ["out.nii.gz", "out.nii", "out.mha", "out.nrrd", "bspline.tfm"])
+    def test_refused_and_nothing_left(self, tmp_path, name):
+        result = _run_child(f"""
+            import os, resource
+            import numpy as np
+            os.chdir({str(tmp_path)!r})
+            image = sitk.GetImageFromArray(np.random.default_rng(0).random((64, 64, 64)).astype(np.float32))
+            bspline = sitk.BSplineTransform(3)
+            bspline.SetTransformDomainMeshSize([30] * 3)  # about 100,000 parameters, 2 MB of text
+            resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+            try:
+                if {name!r}.startswith("bspline"):
+                    io.write_transform(bspline, {name!r})
+                else:
+                    io.write_image(image, {name!r})
+            except (OSError, RuntimeError) as error:  # the writers that notice raise RuntimeError themselves
+                print(type(error).__name__, error)
+            print(sorted(os.listdir(".")))
+            """)
+        assert result.returncode == 0, result.stderr[-500:]
+        if name.endswith((".nii.gz", ".nii", ".tfm")):  # the writers that report on stderr only
+            assert result.stdout.startswith(f"OSError {name}: writing it failed: the file came out incomplete"), \
+                result.stdout
+        assert result.stdout.endswith("[]\n"), result.stdout  # no temporary, no partial file
+
+
 class TestWriteJson:
     def test_numpy_values_and_paths(self, tmp_path):
         path = tmp_path / "report.json"
