@@ -165,7 +165,12 @@ def _check_output_folder(output: Path) -> None:
     """Refuse, before any work, an output folder that exists as a file or cannot be created or written."""
     if output.exists() and not output.is_dir():
         raise InputError(f"{output}: exists and is not a folder; choose another output folder")
-    existing = next(folder for folder in (output, *output.absolute().parents) if folder.exists())
+    for existing in (output, *output.absolute().parents):
+        if existing.exists():
+            break
+        if existing.is_symlink():  # mkdir would fail on it after the work
+            raise InputError(f"{output}: cannot be created: {existing} is a link to {os.readlink(existing)}, which "
+                             "does not exist; choose another output folder")
     if not existing.is_dir():
         raise InputError(f"{output}: cannot be created: {existing} is a file; choose another output folder")
     if not os.access(existing, os.W_OK | os.X_OK):
@@ -173,9 +178,24 @@ def _check_output_folder(output: Path) -> None:
                          "folder")
 
 
-def _same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+def _make_folder(output: Path, *, staging: bool = False) -> Path:
+    """Create ``output`` and its missing parents; with ``staging``, return a new hidden folder inside it.
+
+    Raises:
+        InputError: naming ``output``, where the checks before the work could not tell (``/proc/x``, a full disk).
+    """
     try:
-        return os.path.samefile(a, b)
+        output.mkdir(parents=True, exist_ok=True)
+        return Path(tempfile.mkdtemp(prefix=".dpcn-med-", dir=output)) if staging else output
+    except OSError as error:
+        raise InputError(f"{output}: cannot be written ({error.strerror}); choose another output folder") from None
+
+
+def _same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """Whether ``b`` is or would be the existing file ``a``, however spelt: ``out/x/../in.nii.gz`` with no ``x`` yet
+    names ``out/in.nii.gz`` once the output folders are made (``realpath`` drops ``x/..`` when ``x`` is missing)."""
+    try:
+        return os.path.samefile(os.path.realpath(a), os.path.realpath(b))
     except OSError:
         return False
 
@@ -214,10 +234,9 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
     # Stage everything in a hidden folder inside the output folder (one file system, so the moves are renames), then
     # move it in: a failed or interrupted run leaves no partial result, nor the folders it created.
     created = [folder for folder in (output, *output.absolute().parents) if not folder.exists()]
-    output.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".dpcn-med-", dir=output))
-    finished = False
+    staging, finished = None, False
     try:
+        staging = _make_folder(output, staging=True)
         io.write_transform(result.fixed_to_moving, staging / "transform.tfm")
         io.write_transform(result.fixed_to_moving, staging / "transform.h5")
         io.write_transform(result.moving_to_fixed, staging / "inverse.tfm")
@@ -236,7 +255,8 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
             os.replace(staging / name, output / name)
         finished = True
     finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
         if not finished:
             for folder in created:  # deepest first; one holding anything else stays
                 try:
@@ -324,6 +344,9 @@ def _register_batch(args: argparse.Namespace) -> int:
     from dpcn_med import io
 
     pairs = _read_pairs(args.pairs)
+    if _same_file(args.pairs, args.output / "summary.csv"):
+        raise InputError(f"{args.output / 'summary.csv'}: is this run's pairs file; choose another output folder "
+                         "(inputs are never overwritten)")
     _check_output_folder(args.output)
     rows, codes = [], []
     for index, pair in enumerate(pairs, start=1):
@@ -356,9 +379,12 @@ def _register_batch(args: argparse.Namespace) -> int:
             if args.verbose:
                 traceback.print_exc()
         codes.append(code)
-        if not args.quiet:
-            print(f"{label}{rows[-1]['status']} {rows[-1]['message']}".rstrip())
-    args.output.mkdir(parents=True, exist_ok=True)
+        line = f"{label}{rows[-1]['status']} {rows[-1]['message']}".rstrip()
+        if code in (EXIT_INPUT, EXIT_INTERNAL):  # errors, on stderr, -q or not
+            print(line, file=sys.stderr)
+        elif not args.quiet:
+            print(line)
+    _make_folder(args.output)
     io.write_csv(rows, args.output / "summary.csv")
     if not args.quiet:
         print(_table(rows))
@@ -459,7 +485,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"dpcn-med: error: {error}", file=sys.stderr)
         return EXIT_INPUT
     except KeyboardInterrupt:
-        print("dpcn-med: interrupted; nothing was written for the unfinished pair", file=sys.stderr)
+        unfinished = {"register": "nothing was written for the unfinished pair",
+                      "register-batch": "nothing was written for the unfinished pair; finished pairs are kept and "
+                                        "skipped when the same command runs again",
+                      "train": "any checkpoint written so far is kept, and the same command resumes from it",
+                      "benchmark": "nothing was written"}
+        print(f"dpcn-med: interrupted; {unfinished.get(args.command, 'nothing was written')}", file=sys.stderr)
         return 130
     except Exception as error:
         if verbose:

@@ -232,6 +232,17 @@ class TestBadInput:
         assert code == 2 and "never overwritten" in capsys.readouterr().err
         assert moving.read_bytes() == before
 
+    def test_output_spelt_through_a_missing_folder_is_refused(self, pair, tmp_path, capsys):
+        # case/x/../case names case once x exists: the run would make x, then write over the moving image
+        folder = tmp_path / "case"
+        folder.mkdir()
+        moving = folder / "moving_resampled.nii.gz"
+        sitk.WriteImage(sitk.ReadImage(str(pair[1])), str(moving))
+        before = moving.read_bytes()
+        code = main(["register", str(pair[0]), str(moving), "-o", f"{folder}/x/../../case", "--no-refine"])
+        assert code == 2 and "moving_resampled.nii.gz: is an input of this run" in capsys.readouterr().err
+        assert moving.read_bytes() == before and sorted(p.name for p in folder.iterdir()) == [moving.name]
+
     def test_bad_mask(self, pair, tmp_path, capsys):
         mask = tmp_path / "mask.nii.gz"
         sitk.WriteImage(sitk.Image([5, 5, 5], sitk.sitkUInt8) + 1, str(mask))
@@ -251,6 +262,17 @@ class TestBadInput:
         assert re.search(r"notes\.txt.*(is a file|is not a folder)", capsys.readouterr().err)
         assert (tmp_path / "notes.txt").read_text() == "x"
 
+    def test_output_through_a_dangling_link_is_refused_before_any_work(self, pair, tmp_path, capsys, monkeypatch):
+        import dpcn_med.register  # noqa: F401  (the package exports the function under the module's name)
+
+        monkeypatch.setattr(sys.modules["dpcn_med.register"], "register",
+                            lambda *args, **kwargs: pytest.fail("registered"))
+        (tmp_path / "link").symlink_to(tmp_path / "gone")
+        assert main(["register", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "link" / "out")]) == 2
+        assert re.search(r"link/out: cannot be created: \S+link is a link to \S+gone, which does not exist",
+                         capsys.readouterr().err)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["link"]
+
     def test_min_confidence_must_be_finite(self, pair, tmp_path, capsys):
         with pytest.raises(SystemExit) as caught:
             main(["register", str(pair[0]), str(pair[1]), "--min-confidence", "nan", "-o", str(tmp_path / "o")])
@@ -259,7 +281,7 @@ class TestBadInput:
     def test_missing_model_file(self, pair, tmp_path, capsys):
         code = main(["register", str(pair[0]), str(pair[1]), "--model", str(tmp_path / "ct_mr"), "-o",
                      str(tmp_path / "o")])
-        assert code == 2 and "ct_mr.json: not found" in capsys.readouterr().err
+        assert code == 2 and "ct_mr: no such model (neither ct_mr.safetensors nor ct_mr.json" in capsys.readouterr().err
         assert not (tmp_path / "o").exists()
 
     def test_integer_model_weights(self, pair, tmp_path, capsys):
@@ -379,6 +401,23 @@ class TestBatch:
         assert main(["register-batch", str(tmp_path / "good.csv"), "-o", str(output), "--min-confidence", "2"]) == 3
         rows = list(csv.DictReader((output / "summary.csv").open()))
         assert rows[0]["status"] == "done earlier, low confidence"
+
+    def test_errors_go_to_stderr_even_when_quiet(self, pair, tmp_path, capsys):
+        table = tmp_path / "pairs.csv"
+        table.write_text(f"id,fixed,moving\nbroken,{pair[0]},missing.nii.gz\n")
+        assert main(["register-batch", str(table), "-o", str(tmp_path / "cohort"), "-q"]) == 2
+        out, err = capsys.readouterr()
+        assert out == "" and re.fullmatch(r"\[1/1\] broken bad input \S*missing\.nii\.gz: not found.*\n", err)
+
+    def test_the_pairs_file_is_never_the_summary(self, pair, tmp_path, capsys):
+        (tmp_path / "cohort").mkdir()
+        table = tmp_path / "cohort" / "summary.csv"
+        table.write_text(f"id,fixed,moving\ngood,{pair[0]},{pair[1]}\n")
+        before = table.read_bytes()
+        for output in (tmp_path / "cohort", f"{tmp_path}/new/../cohort"):
+            assert main(["register-batch", str(table), "-o", str(output), "--no-refine"]) == 2
+            assert "summary.csv: is this run's pairs file" in capsys.readouterr().err
+        assert table.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["cohort"]
 
     @pytest.mark.parametrize("text, message", [
         ("a,b\n1,2\n", r"pairs\.csv: no column fixed, moving"),

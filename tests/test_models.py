@@ -176,8 +176,13 @@ class TestWeights:
             load_model(path)
 
     def test_missing_or_foreign_files(self, tmp_path):
-        with pytest.raises(InputNotFoundError, match="nothing.json: not found"):
-            load_model(tmp_path / "nothing")
+        with pytest.raises(InputNotFoundError, match=r"nothing\.safetensors: no such model \(neither "
+                                                     r"nothing\.safetensors nor nothing\.json exists in "):
+            load_model(tmp_path / "nothing.safetensors")
+        save_model(DPCN(TINY), tmp_path / "a")
+        (tmp_path / "a.safetensors").rename(tmp_path / "lone.safetensors")  # one file of the pair lost
+        with pytest.raises(InputNotFoundError, match=r"lone\.json: not found"):
+            load_model(tmp_path / "lone")
         save_model(DPCN(TINY), tmp_path / "a")
         (tmp_path / "a.json").write_text(json.dumps({"format": "something else"}))
         with pytest.raises(InputError, match="a.json: not a dpcn_med model config"):

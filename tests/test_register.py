@@ -417,7 +417,7 @@ class TestErrors:
             register(mni_2mm(), mni_2mm(), mode="affine")
 
     def test_missing_model_files(self, tmp_path):
-        with pytest.raises(InputNotFoundError, match=r"ct_mr\.json: not found"):
+        with pytest.raises(InputNotFoundError, match=r"ct_mr: no such model \(neither ct_mr\.safetensors nor "):
             register(mni_2mm(), mni_2mm(), model=tmp_path / "ct_mr")
 
     def test_model_trained_at_another_bandwidth(self, tmp_path):

@@ -13,7 +13,7 @@ import torch
 
 from dpcn_med import io
 from dpcn_med.arguments import shown
-from dpcn_med.errors import InputError
+from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.models.dpcn import DPCN, ModelConfig
 
 FORMAT = "dpcn_med.model/1"
@@ -72,6 +72,9 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
     weights, config = model_paths(path)
     if os.fspath(path).lower().endswith(io.PICKLE_SUFFIXES):
         io.read_tensors(path)  # raises its message about pickles
+    if not weights.exists() and not config.exists():  # the name is wrong, not one file of the pair lost
+        raise InputNotFoundError(f"{os.fspath(path)}: no such model (neither {weights.name} nor {config.name} "
+                                 f"exists in {weights.parent}); check the path")
     description = io.read_json(config)
     if not isinstance(description, dict) or description.get("format") != FORMAT:
         raise InputError(f"{config}: not a dpcn_med model config (format {FORMAT!r} expected)")
