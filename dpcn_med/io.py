@@ -428,8 +428,8 @@ def _bytes_text(count: float) -> str:
 
 
 # ------------------------------------------------------------------------------------------------------ truncation
-def _check_complete(path: Path) -> None:
-    """Raise if the file holds fewer voxel bytes than its header promises.
+def _check_complete(path: Path, *, finite: bool = True) -> None:
+    """Raise if the file holds fewer voxel bytes than its header promises (or, with ``finite``, NaN or Inf voxels).
 
     SimpleITK 2.5 reads a truncated .nii or .nii.gz without an error and fills the missing voxels with zeros, and
     reports a truncated MetaImage as "No such file or directory"; NRRD's reader says what is missing itself.
@@ -441,14 +441,14 @@ def _check_complete(path: Path) -> None:
             # Measured: ITK's NIfTI reader given X.nii.gz opens X.nii when both exist.
             raise InputError(f"{path}: {sibling.name} lies beside it and SimpleITK would read that file instead; "
                              "rename or move one of the two")
-        _check_nifti(path, compressed=True)
+        _check_nifti(path, compressed=True, finite=finite)
     elif lower.endswith(".nii"):
-        _check_nifti(path, compressed=False)
+        _check_nifti(path, compressed=False, finite=finite)
     elif lower.endswith((".mha", ".mhd")):
         _check_metaimage(path)
 
 
-def _check_nifti(path: Path, *, compressed: bool) -> None:
+def _check_nifti(path: Path, *, compressed: bool, finite: bool = True) -> None:
     """Raise if a NIfTI file is truncated or holds non-finite voxels.
 
     Both go unnoticed otherwise: SimpleITK 2.5 zero-fills the missing voxels and reads NaN and infinite voxels as 0
@@ -476,10 +476,11 @@ def _check_nifti(path: Path, *, compressed: bool) -> None:
     offset, dtype, voxels = int(proxy.offset), proxy.dtype, math.prod(proxy.shape)
     needed = offset + voxels * dtype.itemsize
     nan = infinite = 0
-    if not compressed and dtype.kind != "f":
+    counted = dtype if finite and dtype.kind == "f" else None
+    if not compressed and counted is None:
         found = path.stat().st_size
     else:
-        found, nan, infinite = _scan_nifti(path, compressed, offset, dtype if dtype.kind == "f" else None, needed)
+        found, nan, infinite = _scan_nifti(path, compressed, offset, counted, needed)
     if found < needed:
         raise _truncated(path, f"it holds {found:,} bytes, the header needs {needed:,}")
     if nan or infinite:
@@ -720,7 +721,7 @@ def write_image(image: sitk.Image, path: str | os.PathLike, *, compress: bool = 
                          "(.mhd and .nhdr keep the voxels in a second file, which one rename cannot move)")
     with atomic_output(target) as temporary:
         sitk.WriteImage(image, str(temporary), useCompression=compress)
-        _check_written(target, lambda: _check_complete(temporary))
+        _check_written(target, lambda: _check_complete(temporary, finite=False))
 
 
 def write_transform(transform: sitk.Transform, path: str | os.PathLike) -> None:
@@ -754,7 +755,10 @@ def _check_written(target: Path, check: Callable[[], None]) -> None:
 
 def _check_same_transform(path: Path, transform: sitk.Transform) -> None:
     """Raise ``InputError`` if ``path`` does not read back as ``transform``'s parameters (to text precision)."""
-    written = read_transform(path)
+    try:
+        written = sitk.ReadTransform(str(path))
+    except RuntimeError as error:
+        raise InputError(f"{path}: unreadable ({_sitk_reason(error)})") from None
     for found, expected in ((written.GetParameters(), transform.GetParameters()),
                             (written.GetFixedParameters(), transform.GetFixedParameters())):
         if len(found) != len(expected) or not np.allclose(found, expected, rtol=1e-9, atol=1e-12):

@@ -674,7 +674,7 @@ def _merge_same_poses(scored: list[tuple[float, int, sitk.Transform]], fixed: si
     this, the stored pose won ties by sampling noise (an MRI-DIR CT round trip: both -1.33), and the report named the
     identity as the start, with its own low confidence. The transform stays the best one: a voxel is 8 mm at the
     coarsest level, and two starts that close can still end apart in metric (an MNI pseudo-CT pose: -0.46 and
-    -0.69 there, 0.99 mm off when the lower index's transform went on, 0.03 mm with the better one)."""
+    -0.69 there, 0.99 mm off when the lower index's transform went on, 0.04 mm with the better one)."""
     ends = np.asarray(fixed.GetSize()) - 1
     corners = [fixed.TransformContinuousIndexToPhysicalPoint((ends * np.asarray(corner)).tolist())
                for corner in np.ndindex(2, 2, 2)]

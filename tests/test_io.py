@@ -628,6 +628,13 @@ class TestWriteImage:
         io.write_image(smooth, tmp_path / "small.mha")
         assert (tmp_path / "small.mha").stat().st_size < (tmp_path / "raw.mha").stat().st_size / 2
 
+    def test_nan_voxels_are_written_as_they_are(self, tmp_path):
+        # reading refuses them (SimpleITK would read 0); writing is the caller's business, and no short file
+        array = np.ones((4, 5, 6), np.float32)
+        array[1, 2, 3] = np.nan
+        io.write_image(sitk.GetImageFromArray(array), tmp_path / "nan.nii.gz")
+        assert np.isnan(nibabel.load(tmp_path / "nan.nii.gz").get_fdata()).sum() == 1  # SimpleITK reads NaN as 0
+
     def test_two_file_formats_refused(self, volume, tmp_path):
         with pytest.raises(InputError, match=r"out\.mhd: cannot write an image with this suffix; use \.nii\.gz"):
             io.write_image(volume, tmp_path / "out.mhd")
@@ -642,6 +649,11 @@ class TestWriteTransform:
         np.testing.assert_allclose(sitk.ReadTransform(str(path)).GetParameters(), similarity().GetParameters(),
                                    rtol=0, atol=1e-15)
         assert os.listdir(tmp_path) == [path.name]
+
+    def test_two_dimensional(self, tmp_path):
+        transform = sitk.Euler2DTransform((1.0, 2.0), 0.3, (4.0, 5.0))
+        io.write_transform(transform, tmp_path / "t.tfm")
+        assert sitk.ReadTransform(str(tmp_path / "t.tfm")).GetParameters() == pytest.approx(transform.GetParameters())
 
     def test_unknown_suffix(self, tmp_path):
         with pytest.raises(InputError, match=r"t\.mat: cannot write a transform with this suffix; use \.tfm"):
