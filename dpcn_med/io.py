@@ -428,8 +428,8 @@ def _bytes_text(count: float) -> str:
 
 
 # ------------------------------------------------------------------------------------------------------ truncation
-def _check_complete(path: Path, *, finite: bool = True) -> None:
-    """Raise if the file holds fewer voxel bytes than its header promises (or, with ``finite``, NaN or Inf voxels).
+def _check_complete(path: Path) -> None:
+    """Raise if the file holds fewer voxel bytes than its header promises.
 
     SimpleITK 2.5 reads a truncated .nii or .nii.gz without an error and fills the missing voxels with zeros, and
     reports a truncated MetaImage as "No such file or directory"; NRRD's reader says what is missing itself.
@@ -441,14 +441,14 @@ def _check_complete(path: Path, *, finite: bool = True) -> None:
             # Measured: ITK's NIfTI reader given X.nii.gz opens X.nii when both exist.
             raise InputError(f"{path}: {sibling.name} lies beside it and SimpleITK would read that file instead; "
                              "rename or move one of the two")
-        _check_nifti(path, compressed=True, finite=finite)
+        _check_nifti(path, compressed=True)
     elif lower.endswith(".nii"):
-        _check_nifti(path, compressed=False, finite=finite)
+        _check_nifti(path, compressed=False)
     elif lower.endswith((".mha", ".mhd")):
         _check_metaimage(path)
 
 
-def _check_nifti(path: Path, *, compressed: bool, finite: bool = True) -> None:
+def _check_nifti(path: Path, *, compressed: bool) -> None:
     """Raise if a NIfTI file is truncated or holds non-finite voxels.
 
     Both go unnoticed otherwise: SimpleITK 2.5 zero-fills the missing voxels and reads NaN and infinite voxels as 0
@@ -476,11 +476,10 @@ def _check_nifti(path: Path, *, compressed: bool, finite: bool = True) -> None:
     offset, dtype, voxels = int(proxy.offset), proxy.dtype, math.prod(proxy.shape)
     needed = offset + voxels * dtype.itemsize
     nan = infinite = 0
-    counted = dtype if finite and dtype.kind == "f" else None
-    if not compressed and counted is None:
+    if not compressed and dtype.kind != "f":
         found = path.stat().st_size
     else:
-        found, nan, infinite = _scan_nifti(path, compressed, offset, counted, needed)
+        found, nan, infinite = _scan_nifti(path, compressed, offset, dtype if dtype.kind == "f" else None, needed)
     if found < needed:
         raise _truncated(path, f"it holds {found:,} bytes, the header needs {needed:,}")
     if nan or infinite:
@@ -721,7 +720,7 @@ def write_image(image: sitk.Image, path: str | os.PathLike, *, compress: bool = 
                          "(.mhd and .nhdr keep the voxels in a second file, which one rename cannot move)")
     with atomic_output(target) as temporary:
         sitk.WriteImage(image, str(temporary), useCompression=compress)
-        _check_written(target, lambda: _check_complete(temporary, finite=False))
+        _check_written(target, lambda: _check_nifti_length(temporary))
 
 
 def write_transform(transform: sitk.Transform, path: str | os.PathLike) -> None:
@@ -751,6 +750,33 @@ def _check_written(target: Path, check: Callable[[], None]) -> None:
     except InputError as error:
         raise OSError(f"{target}: writing it failed: the file came out incomplete (is the disk full, or a file-size "
                       "limit set?); nothing was written") from error
+
+
+def _check_nifti_length(path: Path) -> None:
+    """Raise ``InputError`` if a NIfTI file just written holds fewer bytes than its header needs.
+
+    A .nii.gz is judged by its gzip trailer (its last 4 bytes: the inflated length modulo 2^32; a cut stream ends in
+    arbitrary bytes), not inflated again: reading back a 128 MiB CT that way added 46% to the write (measured). The
+    NRRD and MetaImage writers raise on a short write themselves.
+    """
+    lower = path.name.lower()
+    if not lower.endswith((".nii", ".nii.gz")):
+        return
+    import nibabel  # imported here: only NIfTI files need it
+
+    try:
+        proxy = nibabel.load(path).dataobj  # the header only
+        needed = int(proxy.offset) + math.prod(proxy.shape) * proxy.dtype.itemsize
+        if lower.endswith(".nii"):
+            complete = path.stat().st_size >= needed
+        else:
+            with open(path, "rb") as stream:
+                stream.seek(-4, os.SEEK_END)
+                complete = int.from_bytes(stream.read(4), "little") == needed % 2 ** 32
+    except (nibabel.filebasedimages.ImageFileError, OSError, ValueError, EOFError) as error:
+        raise InputError(f"{path}: its header does not read back ({error})") from None
+    if not complete:
+        raise InputError(f"{path}: holds fewer bytes than its header needs ({needed:,})")
 
 
 def _check_same_transform(path: Path, transform: sitk.Transform) -> None:
