@@ -735,7 +735,8 @@ def write_transform(transform: sitk.Transform, path: str | os.PathLike) -> None:
         raise InputError(f"{target}: cannot write a transform with this suffix; use {', '.join(TRANSFORM_SUFFIXES)}")
     with atomic_output(target) as temporary:
         sitk.WriteTransform(transform, str(temporary))
-        _check_written(target, lambda: _check_same_transform(temporary, transform))
+        if target.suffix.lower() in (".tfm", ".txt"):  # the HDF5 writer raises on a short write itself
+            _check_written(target, lambda: _check_same_transform(temporary, transform))
 
 
 def _check_written(target: Path, check: Callable[[], None]) -> None:
