@@ -84,6 +84,16 @@ class TestConfig:
                            r"']', but got '<stream end>'$"):
             load_config(tmp_path / "broken.yaml")
 
+    def test_an_empty_file_is_not_a_default_run(self, tmp_path):
+        """An empty or truncated file (or the wrong one) must not start hours of training on the defaults; ``{}``
+        asks for them."""
+        for text in ("", "# nothing set yet\n", "---\n"):
+            (tmp_path / "empty.yaml").write_text(text)
+            with pytest.raises(InputError, match=r"empty\.yaml: holds no settings \(empty, or comments only\)"):
+                load_config(tmp_path / "empty.yaml")
+        (tmp_path / "defaults.yaml").write_text("{}\n")
+        assert load_config(tmp_path / "defaults.yaml").model == TrainConfig().model
+
     def test_values_convert_as_their_fields_say(self, tmp_path):
         (tmp_path / "types.yaml").write_text("optimiser: {learning_rate: 1, gradient_clip: 0}\n"
                                              "data: {folder_crop: null, pair: {scale_range: [1, 2]}}\n")

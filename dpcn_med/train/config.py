@@ -266,20 +266,23 @@ def load_config(path: str | os.PathLike) -> TrainConfig:
 
     Raises:
         InputNotFoundError: the file is missing.
-        InputError: not YAML, a key given twice, unknown keys, values of the wrong type or out of range (each message
-            names the file and the key).
+        InputError: empty, not YAML, a key given twice, unknown keys, values of the wrong type or out of range (each
+            message names the file and the key).
     """
     path = Path(path)
     if not path.is_file():
         raise InputNotFoundError(f"{path}: not found (no such file); check the path")
     try:
-        values = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader) or {}
+        values = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)
     except yaml.MarkedYAMLError as error:
         mark = error.problem_mark
         kind = "" if isinstance(error, yaml.constructor.ConstructorError) else "not a YAML file: "  # YAML, misused
         raise InputError(f"{path}: {kind}line {mark.line + 1}, column {mark.column + 1}: {error.problem}") from None
     except (yaml.YAMLError, UnicodeDecodeError) as error:
         raise InputError(f"{path}: not a YAML file ({' '.join(str(error).split())})") from None
+    if values is None:  # an empty or truncated file, or the wrong one, must not start an hours-long default run
+        raise InputError(f"{path}: holds no settings (empty, or comments only); write the run's settings, or '{{}}' "
+                         "for every default")
     config = _build(TrainConfig, values, str(path))
     folder = path.resolve().parent
 
