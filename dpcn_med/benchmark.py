@@ -15,6 +15,7 @@ refused, and the command line's default methods leave them out.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import shutil
@@ -36,6 +37,8 @@ from dpcn_med.register import Refinement, refine_transform, register
 
 SUCCESS_MM = 2.0
 BIN_DEGREES = 30
+JOURNAL = "results.partial.jsonl"
+"""The output folder's record of an unfinished run (:class:`Journal`); removed once ``results.csv`` is written."""
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
@@ -259,17 +262,19 @@ def status_mib(field: str) -> float:
 
 
 def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | None = None,
-                  showcase: dict | None = None, *, skip_missing: bool = False) -> list[dict]:
+                  showcase: dict | None = None, *, skip_missing: bool = False, journal: Journal | None = None
+                  ) -> list[dict]:
     """Every method on every pair: one row per (case, bin, trial, method) with TRE (mm), seconds and peak MiB.
 
     ``showcase``, when given, receives one dpcn registration to render (:func:`write_outputs`): the first
     heterogeneous case's (else the first case's) first pose in the largest-rotation bin, as ``case``, ``bin``,
     ``fixed``, ``moving`` and ``estimate``. ``skip_missing`` leaves out (and reports through ``progress``) the methods
-    whose packages are not installed, rather than refusing them.
+    whose packages are not installed, rather than refusing them. ``journal``, when given, receives every
+    registration as it finishes, and those it already holds are not registered again.
 
     Raises:
         InputError: an unknown or repeated case, method or bin; a method whose package is missing; no case; fewer
-            than one trial.
+            than one trial; a journal of other settings (:meth:`Journal.rows`).
     """
     installed = available_methods()
     methods = config.methods or installed
@@ -292,6 +297,9 @@ def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | Non
         progress(f"left out: {'; '.join(missing)} (pip install 'dpcn_med[benchmark]')")
     methods = tuple(name for name in methods if name in installed)
     shown = next((case for case in config.cases if not CASES[case][1]), config.cases[0])
+    earlier = journal.rows() if journal is not None else {}
+    if earlier and progress is not None:
+        progress(f"going on from {journal.path}: {len(earlier)} registration(s) of an interrupted run")
     rows = []
     folder = Path(tempfile.mkdtemp(prefix="dpcn-med-benchmark-"))
     try:
@@ -304,25 +312,91 @@ def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | Non
                     truth = rotation_in_bin(rng, low, high, centre, config.max_shift_mm)
                     if config.run_bins and f"{low}-{high}" not in config.run_bins:
                         continue
-                    moving = moved_copy(moving_whole, truth)
+                    moving = None
                     for method in methods:
+                        key = (case, f"{low}-{high}", trial, method)
+                        shows = showcase is not None and (case, method, trial, (low, high)) == (
+                            shown, "dpcn", 0, config.bins[-1])
+                        if key in earlier and not shows:  # the showcase is registered again: its render needs it
+                            rows.append(earlier[key])
+                            continue
+                        moving = moved_copy(moving_whole, truth) if moving is None else moving
                         before = reset_peak_rss()
                         started = time.perf_counter()
                         estimate = METHODS[method][2](fixed, moving, folder)
                         seconds = time.perf_counter() - started
                         peak = status_mib("VmHWM") - before if before is not None else float("nan")
                         error = target_registration_error(estimate, truth, corners)
-                        if showcase is not None and (case, method, trial) == (shown, "dpcn", 0) and (
-                                (low, high) == config.bins[-1]):
+                        if shows:
                             showcase.update(case=case, bin=f"{low}-{high}", fixed=fixed, moving=moving,
                                             estimate=estimate)
                         rows.append({"case": case, "bin": f"{low}-{high}", "trial": trial, "method": method,
                                      "tre_mm": error, "seconds": seconds, "peak_mib": peak})
+                        if journal is not None:
+                            journal.append(rows[-1])
                         if progress is not None:
                             progress(f"{case} {low}-{high} deg #{trial + 1} {method}: {error:.2f} mm, {seconds:.1f} s")
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     return rows
+
+
+class Journal:
+    """The registrations of a run so far, one JSON object a line, so an interrupted run goes on where it stopped.
+
+    The first line holds the settings that fix the poses (seed, trials, bins, largest shift) and the version; a run
+    with other settings is refused rather than mixed in. Each registration is appended and flushed to disk as it
+    finishes; a last line cut by the interruption is dropped.
+    """
+
+    def __init__(self, path: str | os.PathLike, config: BenchmarkConfig) -> None:
+        from dpcn_med import __version__
+
+        self.path = Path(path)
+        self.settings = {"version": __version__, "seed": config.seed, "trials": config.trials,
+                         "max_shift_mm": config.max_shift_mm, "bins": [f"{low}-{high}" for low, high in config.bins]}
+
+    def rows(self) -> dict[tuple[str, str, int, str], dict]:
+        """The registrations written so far, by ``(case, bin, trial, method)`` (a later line wins).
+
+        Raises:
+            InputError: the file is not a journal, was written with other settings, or holds a malformed row.
+        """
+        if not self.path.exists():
+            return {}
+        lines = io.read_text(self.path).split("\n")
+        complete = lines[:-1]  # text after the last line end was cut by the interruption
+        try:
+            settings = json.loads(complete[0])["settings"] if complete else None
+        except (json.JSONDecodeError, KeyError, TypeError):
+            settings = None
+        if settings != self.settings:
+            raise InputError(f"{self.path}: holds an interrupted run with other settings ({settings}, this run "
+                             f"{self.settings}); rerun with that run's options, or choose another output folder")
+        found: dict[tuple[str, str, int, str], dict] = {}
+        for line, text in enumerate(complete[1:], start=2):
+            try:
+                record = json.loads(text)
+                row = {field: kind(record[field]) for field, kind in RESULT_FIELDS.items()}
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError) as error:
+                raise InputError(f"{self.path}: line {line}: not a registration ({type(error).__name__}: {error})"
+                                 ) from None
+            found[_checked_row(row, self.path, line)] = row
+        return found
+
+    def append(self, row: dict) -> None:
+        """Append ``row`` (one of :data:`RESULT_FIELDS`), starting the file with the settings if it is new."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.path, "a+b") as stream:
+            stream.seek(0)
+            text = stream.read()
+            if not text:
+                stream.write((json.dumps({"settings": self.settings}) + "\n").encode())
+            elif not text.endswith(b"\n"):  # cut by an interruption: drop the partial line
+                stream.truncate(text.rfind(b"\n") + 1)
+            stream.write((json.dumps({field: row[field] for field in RESULT_FIELDS}) + "\n").encode())
+            stream.flush()
+            os.fsync(stream.fileno())
 
 
 def summarise(rows: list[dict]) -> list[dict]:
@@ -425,7 +499,6 @@ def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
             negative trial, a TRE or time that is negative or not finite, or a registration (case, bin, trial, method)
             found twice.
     """
-    bins = [f"{low}-{high}" for low, high in BenchmarkConfig().bins]
     rows, seen = [], {}
     for folder in folders:
         path = Path(folder) / "results.csv"
@@ -433,14 +506,7 @@ def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
         if found and set(found[0]) != set(RESULT_FIELDS):
             raise InputError(f"{path}: not a benchmark's results (columns {', '.join(RESULT_FIELDS)}, no others)")
         for line, row in enumerate(found, start=2):
-            if row["case"] not in CASES or row["method"] not in METHODS:
-                raise InputError(f"{path}: line {line}: unknown case or method {row['case']!r}, {row['method']!r}")
-            if row["bin"] not in bins:
-                raise InputError(f"{path}: line {line}: unknown bin {row['bin']!r}; use one of {', '.join(bins)}")
-            for field in ("trial", "tre_mm", "seconds"):  # peak_mib may be NaN (no /proc) or slightly negative
-                if not (math.isfinite(row[field]) and row[field] >= 0):
-                    raise InputError(f"{path}: line {line}: {field} {row[field]}; expected a finite number >= 0")
-            key = (row["case"], row["bin"], row["trial"], row["method"])
+            key = _checked_row(row, path, line)
             if key in seen:
                 raise InputError(f"{path}: line {line}: {', '.join(map(str, key))} is also in {seen[key]}")
             seen[key] = path
@@ -448,6 +514,23 @@ def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
     if not rows:
         raise InputError(f"{', '.join(map(str, folders))}: no registrations to combine")
     return rows
+
+
+def _checked_row(row: dict, path: Path, line: int) -> tuple[str, str, int, str]:
+    """The key ``(case, bin, trial, method)`` of a row read back from ``path``.
+
+    Raises:
+        InputError: an unknown case, method or bin, a negative trial, or a TRE or time that is negative or not finite.
+    """
+    bins = [f"{low}-{high}" for low, high in BenchmarkConfig().bins]
+    if row["case"] not in CASES or row["method"] not in METHODS:
+        raise InputError(f"{path}: line {line}: unknown case or method {row['case']!r}, {row['method']!r}")
+    if row["bin"] not in bins:
+        raise InputError(f"{path}: line {line}: unknown bin {row['bin']!r}; use one of {', '.join(bins)}")
+    for field in ("trial", "tre_mm", "seconds"):  # peak_mib may be NaN (no /proc) or slightly negative
+        if not (math.isfinite(row[field]) and row[field] >= 0):
+            raise InputError(f"{path}: line {line}: {field} {row[field]}; expected a finite number >= 0")
+    return row["case"], row["bin"], row["trial"], row["method"]
 
 
 def _render(showcase: dict, path: Path) -> str:

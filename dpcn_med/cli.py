@@ -72,7 +72,7 @@ def _parser() -> argparse.ArgumentParser:
     register.add_argument("fixed", help="fixed volume: NIfTI, NRRD, MHA/MHD, DICOM folder (FOLDER@SERIES_UID to pick "
                           "a series) or a surface mesh / point cloud (.stl .vtk .vtp .ply .obj)")
     register.add_argument("moving", help="moving volume, same kinds")
-    register.add_argument("-o", "--output", required=True, type=Path, help="output folder (created)")
+    register.add_argument("-o", "--output", required=True, type=_output_path, help="output folder (created)")
     register.add_argument("--fixed-mask", help="binary mask on the fixed image's grid")
     register.add_argument("--moving-mask", help="binary mask on the moving image's grid")
 
@@ -81,7 +81,7 @@ def _parser() -> argparse.ArgumentParser:
                                 "id, fixed_mask, moving_mask; paths relative to the CSV) into OUTDIR/ID/. Pairs whose "
                                 "report.json exists are skipped, so an interrupted run resumes.")
     batch.add_argument("pairs", type=Path, help="CSV file with a header row")
-    batch.add_argument("-o", "--output", required=True, type=Path, help="output folder (created)")
+    batch.add_argument("-o", "--output", required=True, type=_output_path, help="output folder (created)")
 
     training = commands.add_parser("train", help="train the feature networks (DPCN++) from a YAML config",
                                    description="Train a model on synthetic pairs as CONFIG says (see training/configs/"
@@ -100,7 +100,9 @@ def _parser() -> argparse.ArgumentParser:
                                 "30-degree bins of initial rotation, and write results.csv, summary.md and "
                                 "success.png into OUTDIR. Quick mode (default): the built-in volumes, one pose per "
                                 "bin, a few minutes; --full: the shared real volumes too, ten poses per bin.")
-    bench.add_argument("-o", "--output", type=Path, default=Path("benchmark_output"), help="output folder")
+    bench.add_argument("-o", "--output", type=_output_path, default=Path("benchmark_output"),
+                       help="output folder; an interrupted run's registrations are kept there (results.partial.jsonl) "
+                       "and the same command goes on from them")
     bench.add_argument("--full", action="store_true", help="the documented run (docs/benchmarks.md)")
     bench.add_argument("--cases", nargs="+", help="override the mode's cases")
     bench.add_argument("--methods", nargs="+", help="override the methods (default: every installed one)")
@@ -159,6 +161,12 @@ def _positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
     return value
+
+
+def _output_path(text: str) -> Path:
+    if not text.strip():  # Path("") is the working folder: an empty variable in a script would write there
+        raise argparse.ArgumentTypeError("an empty output folder; give a folder name ('.' for the working folder)")
+    return Path(text)
 
 
 def _check_output_folder(output: Path) -> None:
@@ -447,9 +455,12 @@ def _benchmark(args: argparse.Namespace) -> int:
         rows = benchmark.combine_results(args.combine)
         config = replace(config, trials=max(row["trial"] for row in rows) + 1)
     else:
+        journal = benchmark.Journal(args.output / benchmark.JOURNAL, config)
         rows = benchmark.run_benchmark(config, progress=lambda line: print(line, file=sys.stderr),
-                                       showcase=showcase, skip_missing=not args.methods)
+                                       showcase=showcase, skip_missing=not args.methods, journal=journal)
     print(benchmark.write_outputs(rows, config, args.output, command=args.command_line, showcase=showcase))
+    if not args.combine:
+        journal.path.unlink(missing_ok=True)  # its rows are in results.csv now
     return EXIT_OK
 
 
@@ -489,7 +500,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                       "register-batch": "nothing was written for the unfinished pair; finished pairs are kept and "
                                         "skipped when the same command runs again",
                       "train": "any checkpoint written so far is kept, and the same command resumes from it",
-                      "benchmark": "nothing was written"}
+                      "benchmark": "the finished registrations are kept (results.partial.jsonl in the output "
+                                   "folder), and the same command goes on from them"}
         print(f"dpcn-med: interrupted; {unfinished.get(args.command, 'nothing was written')}", file=sys.stderr)
         return 130
     except Exception as error:

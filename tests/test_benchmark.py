@@ -184,3 +184,76 @@ class TestRunBenchmark:
                              skip_missing=True)
         assert [r["method"] for r in rows] == ["dpcn-global"]
         assert said[0] == "left out: ants-rigid needs antspyx (pip install 'dpcn_med[benchmark]')"
+
+
+class TestJournal:
+    """An interrupted run (hours of ANTs on the real volumes) goes on where it stopped."""
+
+    def test_an_interrupted_run_goes_on_where_it_stopped(self, tmp_path, capsys, monkeypatch):
+        label, package, register_ = benchmark.METHODS["dpcn-global"]
+        calls: list[int] = []
+
+        def interrupted_second(fixed, moving, folder):
+            calls.append(1)
+            if len(calls) == 2:
+                raise KeyboardInterrupt
+            return register_(fixed, moving, folder)
+
+        monkeypatch.setitem(benchmark.METHODS, "dpcn-global", (label, package, interrupted_second))
+        command = ["benchmark", "--cases", "mni", "--methods", "dpcn-global", "--trials", "1", "--bins", "0-30",
+                   "150-180", "-o", str(tmp_path / "b")]
+        assert main(command) == 130
+        assert "the finished registrations are kept (results.partial.jsonl" in capsys.readouterr().err
+        journal = benchmark.Journal(tmp_path / "b" / benchmark.JOURNAL, BenchmarkConfig(trials=1))
+        first = journal.rows()
+        assert list(first) == [("mni", "0-30", 0, "dpcn-global")] and not (tmp_path / "b" / "results.csv").exists()
+
+        assert main(command) == 0
+        assert len(calls) == 3  # the second run registered only the unfinished pose
+        assert "going on from" in capsys.readouterr().err
+        rows = benchmark.combine_results([tmp_path / "b"])
+        assert [r["bin"] for r in rows] == ["0-30", "150-180"] and rows[0] == first[("mni", "0-30", 0, "dpcn-global")]
+        assert not journal.path.exists()
+
+    def test_other_settings_are_refused_not_mixed_in(self, tmp_path, capsys):
+        journal = benchmark.Journal(tmp_path / "b" / benchmark.JOURNAL, BenchmarkConfig(trials=2))
+        journal.append({"case": "mni", "bin": "0-30", "trial": 1, "method": "dpcn-global", "tre_mm": 0.5,
+                        "seconds": 1.0, "peak_mib": 10.0})
+        assert main(["benchmark", "--cases", "mni", "--methods", "dpcn-global", "--trials", "1", "-o",
+                     str(tmp_path / "b")]) == 2
+        err = capsys.readouterr().err
+        assert "results.partial.jsonl: holds an interrupted run with other settings" in err and "'trials': 2" in err
+        assert sorted(p.name for p in (tmp_path / "b").iterdir()) == [benchmark.JOURNAL]
+
+    def test_a_line_cut_by_the_interruption_is_dropped(self, tmp_path):
+        journal = benchmark.Journal(tmp_path / benchmark.JOURNAL, BenchmarkConfig())
+        row = {"case": "mni", "bin": "0-30", "trial": 0, "method": "sitk-geometry", "tre_mm": 0.5, "seconds": 1.0,
+               "peak_mib": float("nan")}
+        journal.append(row)
+        journal.append({**row, "trial": 1})
+        text = journal.path.read_bytes()
+        journal.path.write_bytes(text[:-10])  # the second row, cut
+        assert list(journal.rows()) == [("mni", "0-30", 0, "sitk-geometry")]
+        journal.append({**row, "trial": 2})
+        assert [key[2] for key in journal.rows()] == [0, 2]
+        assert math.isnan(journal.rows()[("mni", "0-30", 0, "sitk-geometry")]["peak_mib"])
+
+        journal.path.write_text(journal.path.read_text().replace('"tre_mm": 0.5', '"tre_mm": -0.5', 1))
+        with pytest.raises(InputError, match=r"results\.partial\.jsonl: line 2: tre_mm -0\.5; expected a finite"):
+            journal.rows()
+        journal.path.write_text(journal.path.read_text().replace("-0.5", "0.5").replace('"trial": 2', '"trial": "two"'))
+        with pytest.raises(InputError, match=r"line 3: not a registration \(ValueError"):
+            journal.rows()
+
+    def test_registrations_in_the_journal_are_not_run_again_but_the_showcase_is(self, tmp_path, monkeypatch):
+        config = BenchmarkConfig(cases=("mni",), methods=("dpcn", "sitk-geometry"), bins=((150, 180),), trials=1)
+        journal = benchmark.Journal(tmp_path / benchmark.JOURNAL, config)
+        for method, tre in (("dpcn", 99.0), ("sitk-geometry", 42.0)):
+            journal.append({"case": "mni", "bin": "150-180", "trial": 0, "method": method, "tre_mm": tre,
+                            "seconds": 1.0, "peak_mib": 1.0})
+        label, package, _ = benchmark.METHODS["sitk-geometry"]
+        monkeypatch.setitem(benchmark.METHODS, "sitk-geometry", (label, package, lambda *a: pytest.fail("ran")))
+        showcase: dict = {}
+        rows = run_benchmark(config, showcase=showcase, journal=journal)
+        assert [r["tre_mm"] for r in rows][1] == 42.0 and rows[0]["tre_mm"] < 2.0  # the showcase, registered again
+        assert showcase["bin"] == "150-180" and journal.rows()[("mni", "150-180", 0, "dpcn")]["tre_mm"] < 2.0

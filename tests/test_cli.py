@@ -273,6 +273,17 @@ class TestBadInput:
                          capsys.readouterr().err)
         assert sorted(p.name for p in tmp_path.iterdir()) == ["link"]
 
+    @pytest.mark.parametrize("command", ["register", "register-batch", "benchmark"])
+    def test_an_empty_output_name_is_refused(self, command, pair, tmp_path, capsys, monkeypatch):
+        """``-o "$OUT"`` with ``OUT`` unset must not write into the working folder."""
+        monkeypatch.chdir(tmp_path)
+        inputs = {"register": [str(pair[0]), str(pair[1])], "register-batch": [str(tmp_path / "pairs.csv")],
+                  "benchmark": []}[command]
+        with pytest.raises(SystemExit) as caught:
+            main([command, *inputs, "-o", ""])
+        assert caught.value.code == 2 and "an empty output folder" in capsys.readouterr().err
+        assert list(tmp_path.iterdir()) == []
+
     def test_min_confidence_must_be_finite(self, pair, tmp_path, capsys):
         with pytest.raises(SystemExit) as caught:
             main(["register", str(pair[0]), str(pair[1]), "--min-confidence", "nan", "-o", str(tmp_path / "o")])
