@@ -475,6 +475,24 @@ class TestErrors:
         with pytest.raises(InputError, match=r"corner\.nii\.gz: holds no foreground of its image"):
             register(fixed, fixed, fixed_mask=tmp_path / "corner.nii.gz")
 
+    @pytest.mark.parametrize("role", ["fixed", "moving"])
+    def test_a_mask_too_small_to_refine_is_refused_by_name(self, role):
+        """ITK's metric failed on masks 1 to 5 voxels wide (an internal error, not a message); the refinement's
+        coarsest level needs 4 of its voxels along each axis: 16 voxels, 32 mm on the 2 mm head."""
+        fixed = mni_2mm()
+        mask = sitk.Image(fixed.GetSize(), sitk.sitkUInt8)
+        mask.CopyInformation(fixed)
+        mask[40:56, 50:66, 40:55] = 1  # 15 voxels along z
+        masks = {f"{role}_mask": mask}
+        with pytest.raises(InputError, match=rf"{role}_mask argument: too small to refine: its box is 32 x 32 x 30 mm; "
+                           r"the refinement needs at least 32 x 32 x 32 mm .*--no-refine"):
+            register(fixed, fixed, **masks)
+        assert register(fixed, fixed, refine=False, **masks).confidence > 0  # without refinement: the solver says
+        mask[40:56, 50:66, 55] = 1  # 16 voxels: refined, and the stored pose (the truth here) wins
+        result = register(fixed, fixed, **masks)
+        assert target_registration_error(result.fixed_to_moving, sitk.Transform(3, sitk.sitkIdentity),
+                                         foreground_corners(fixed)) < 0.5
+
 
 class TestRefinementSettings:
     def test_defaults_and_typical_values_construct(self):
