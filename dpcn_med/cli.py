@@ -61,6 +61,9 @@ def _parser() -> argparse.ArgumentParser:
     options.add_argument("--progress", choices=("auto", "json"), default="auto",
                          help="auto (default): a bar on a terminal; json: one JSON object per line on stdout, "
                          '{"stage": ..., "fraction": ...}, for programs that drive dpcn-med (the Slicer module)')
+    tracebacks = argparse.ArgumentParser(add_help=False)  # the commands without the loudness options
+    tracebacks.add_argument("-v", "--verbose", action="store_true", help="print the traceback of an internal error")
+
     loudness = options.add_mutually_exclusive_group()
     loudness.add_argument("-q", "--quiet", action="store_true", help="print errors only")
     loudness.add_argument("-v", "--verbose", action="store_true", help="print timings; tracebacks on errors")
@@ -83,7 +86,8 @@ def _parser() -> argparse.ArgumentParser:
     batch.add_argument("pairs", type=Path, help="CSV file with a header row")
     batch.add_argument("-o", "--output", required=True, type=_output_path, help="output folder (created)")
 
-    training = commands.add_parser("train", help="train the feature networks (DPCN++) from a YAML config",
+    training = commands.add_parser("train", parents=[tracebacks],
+                                   help="train the feature networks (DPCN++) from a YAML config",
                                    description="Train a model on synthetic pairs as CONFIG says (see training/configs/"
                                    "); resumes from OUTPUT/checkpoint. Under torchrun (torchrun --nproc_per_node N -m "
                                    "dpcn_med train ...) every process trains on its own device "
@@ -95,7 +99,8 @@ def _parser() -> argparse.ArgumentParser:
     training.add_argument("--device", help="auto, cpu or cuda (overrides the config's)")
     training.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and start afresh")
 
-    bench = commands.add_parser("benchmark", help="compare with SimpleITK, ANTs and elastix by initial rotation",
+    bench = commands.add_parser("benchmark", parents=[tracebacks],
+                                help="compare with SimpleITK, ANTs and elastix by initial rotation",
                                 description="Register the same pairs with dpcn_med and the classical tools, in "
                                 "30-degree bins of initial rotation, and write results.csv, summary.md and "
                                 "success.png into OUTDIR. Quick mode (default): the built-in volumes, one pose per "
@@ -115,7 +120,7 @@ def _parser() -> argparse.ArgumentParser:
                        help="run nothing: one summary and figure of earlier runs' results.csv (say, split by --cases "
                        "or --bins over several cores; the same poses, which follow from the case and --seed)")
 
-    info = commands.add_parser("info", help="print an image's geometry and intensity range")
+    info = commands.add_parser("info", parents=[tracebacks], help="print an image's geometry and intensity range")
     info.add_argument("image", help="image file or DICOM folder")
     return parser
 

@@ -904,6 +904,25 @@ def read_tensors(path: str | os.PathLike) -> dict[str, Any]:
         raise InputError(f"{name}: not a readable .safetensors file ({error})") from None
 
 
+def read_tensor_metadata(path: str | os.PathLike) -> dict[str, str]:
+    """The string metadata of a ``.safetensors`` file's header (empty if it has none).
+
+    Raises:
+        InputNotFoundError: the file is missing.
+        InputError: not readable as safetensors.
+    """
+    from safetensors import SafetensorError, safe_open
+
+    name = os.fspath(path)
+    if not os.path.isfile(name):
+        raise InputNotFoundError(f"{name}: not found (no such file); check the path")
+    try:
+        with safe_open(name, framework="pt") as handle:
+            return dict(handle.metadata() or {})
+    except (SafetensorError, OSError, ValueError) as error:
+        raise InputError(f"{name}: not a readable .safetensors file ({error})") from None
+
+
 def read_text(path: str | os.PathLike, *, encoding: str = "utf-8") -> str:
     """The content of a text file (``latin-1`` decodes any bytes, for formats whose encoding is not stated).
 

@@ -461,3 +461,25 @@ class TestInfo:
     def test_missing_file(self, tmp_path, capsys):
         assert main(["info", str(tmp_path / "nope.nii")]) == 2
         assert "nope.nii" in capsys.readouterr().err
+
+    @pytest.mark.parametrize("command", ["info", "train", "benchmark"])
+    def test_internal_errors_offer_a_traceback_the_command_can_give(self, command, pair, tmp_path, capsys, monkeypatch):
+        """Every command's internal error says 'rerun with --verbose'; train, benchmark and info had no such option."""
+        import dpcn_med.benchmark
+        import dpcn_med.io
+        import dpcn_med.train
+
+        def broken(*args, **kwargs):
+            raise RuntimeError("broken on purpose")
+
+        target = {"info": (dpcn_med.io, "image_summary"), "train": (dpcn_med.train, "load_config"),
+                  "benchmark": (dpcn_med.benchmark, "run_benchmark")}[command]
+        monkeypatch.setattr(*target, broken)
+        arguments = {"info": [str(pair[0])], "train": ["--config", str(tmp_path / "c.yaml")],
+                     "benchmark": ["-o", str(tmp_path / "b")]}[command]
+        assert main([command, *arguments]) == 1
+        assert capsys.readouterr().err == ("dpcn-med: internal error: RuntimeError: broken on purpose (rerun with "
+                                           "--verbose for the traceback)\n")
+        assert main([command, *arguments, "--verbose"]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("Traceback (most recent call last)") and "broken on purpose" in err

@@ -7,6 +7,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import socket
 from dataclasses import replace
 from pathlib import Path
@@ -79,6 +80,8 @@ class TestConfig:
     def test_missing_and_malformed_files(self, tmp_path):
         with pytest.raises(InputNotFoundError, match=r"none\.yaml: not found"):
             load_config(tmp_path / "none.yaml")
+        with pytest.raises(InputError, match=r": is a folder; give the YAML config file"):
+            load_config(tmp_path)
         (tmp_path / "broken.yaml").write_text("model: [unclosed\n")
         with pytest.raises(InputError, match=r"broken\.yaml: not a YAML file: line 2, column 1: expected ',' or "
                            r"']', but got '<stream end>'$"):
@@ -148,6 +151,28 @@ BAD_CONFIGS = {  # (text of TINY_YAML, its replacement, the message's key words)
     "nan_shift": ("max_shift_fraction: 0.1", "max_shift_fraction: .nan", r"data\.pair\.max_shift_fraction is nan"),
     "nested_type": ("max_shift_fraction: 0.1", "max_shift_fraction: 0.1, fixed_contrast: {rician: 1}",
                     r"data\.pair\.fixed_contrast\.rician: expected true or false, got 1"),
+    # Values that made NaN or blank training volumes, or a NaN loss, with no error:
+    "nan_bias": ("max_shift_fraction: 0.1", "max_shift_fraction: 0.1, moving_contrast: {bias_strength: .nan}",
+                 r"data\.pair\.moving_contrast\.bias_strength is nan; expected a finite number >= 0"),
+    "one_knot": ("max_shift_fraction: 0.1", "max_shift_fraction: 0.1, moving_contrast: {knots: 1}",
+                 r"data\.pair\.moving_contrast\.knots is 1; expected an integer >= 2"),
+    "infinite_impedance": ("max_shift_fraction: 0.1", "max_shift_fraction: 0.1, ultrasound: {impedance_gain: .inf}",
+                           r"data\.pair\.ultrasound\.impedance_gain is inf"),
+    "nan_standoff": ("max_shift_fraction: 0.1", "max_shift_fraction: 0.1, ultrasound: {standoff: .nan}",
+                     r"data\.pair\.ultrasound\.standoff is nan"),
+    "shift_past_half": ("max_shift_fraction: 0.1", "max_shift_fraction: 100", r"data\.pair\.max_shift_fraction is "
+                        r"100\.0; expected a fraction of N in \[0, 0\.5\]"),
+    "zero_temperature": ("residual_units: 0,", "residual_units: 0, temperatures: [0, 1, 1],",
+                         r"model: temperatures\[0\] is 0\.0; expected a finite number > 0"),
+    "nan_compensation": ("residual_units: 0,", "residual_units: 0, compensation_noise_degrees: .nan,",
+                         r"model\.compensation_noise_degrees is nan; expected a finite number >= 0"),
+    "one_voxel_deep": ("channels: [4, 8, 16]", "channels: [2, 4, 8, 16, 32]", r"model\.channels \(2, 4, 8, 16, 32\): "
+                       r"need at least two levels, and the grid size 16 .* least 2 voxels at the deepest level"),
+    # Seeds numpy or torch refused mid-run as internal errors:
+    "negative_seed": ("seed: 3", "seed: -1", r"tiny\.yaml: seed is -1; expected an integer >= 0 and <= 4294967295"),
+    "huge_seed": ("seed: 3", "seed: 100000000000000", r"tiny\.yaml: seed is 100000000000000"),
+    "huge_validation_seed": ("validation_pairs: 4", "validation_pairs: 4\n  validation_seed: 100000000000000000000",
+                             r"data\.validation_seed is 100000000000000000000"),
     "zero_log_every": ("log_every: 1", "log_every: 0", r"tiny\.yaml: log_every is 0; expected a number of steps"),
     "zero_validate_every": ("validate_every: 2", "validate_every: 0", r"tiny\.yaml: validate_every is 0"),
     "zero_checkpoint_every": ("checkpoint_every: 2", "checkpoint_every: 0", r"tiny\.yaml: checkpoint_every is 0"),
@@ -267,15 +292,7 @@ class TestTrain:
 
     def test_real_pairs_from_folders_train_and_validate(self, tmp_path):
         """Folders of registered pairs (.tfm ground truth) feed every step here and are scored at validation."""
-        image = sitk.BinShrink(sitk.SmoothingRecursiveGaussian(mni152_t1(), 4.0), [4, 4, 4])
-        centre = foreground_box(image)[0]
-        for seed in range(2):
-            folder = tmp_path / "pairs" / f"p{seed}"
-            folder.mkdir(parents=True)
-            truth = random_similarity(np.random.default_rng(seed), centre, max_shift_mm=10.0)
-            io.write_image(image, folder / "fixed.nii.gz")
-            io.write_image(moved_copy(image, truth), folder / "moving.nii.gz")
-            io.write_transform(truth, folder / "transform.tfm")
+        _write_pairs(tmp_path / "pairs", 2)
         config = tiny_config(tmp_path)
         config = replace(config, data=replace(config.data, folders=(str(tmp_path / "pairs"),), folder_fraction=1.0,
                                               validation_folders=(str(tmp_path / "pairs"),)),
@@ -293,12 +310,47 @@ class TestTrain:
         assert "trained 2 steps" in capsys.readouterr().out
         assert (tmp_path / "cli" / "model.safetensors").is_file()
 
+    def test_a_broken_training_pair_is_named_before_any_work(self, tmp_path, capsys):
+        """Read on first use, a broken pair had surfaced mid-run (or hours in, after checkpoints)."""
+        _write_pairs(tmp_path / "pairs", 2)
+        (tmp_path / "pairs" / "p1" / "fixed.nii.gz").write_bytes(b"not an image")
+        (tmp_path / "tiny.yaml").write_text(TINY_YAML.replace("validation_pairs: 4", "validation_pairs: 4\n"
+                                                              "  folders: [pairs]\n  folder_fraction: 0.5"))
+        assert main(["train", "--config", str(tmp_path / "tiny.yaml")]) == 2
+        err = capsys.readouterr().err
+        assert str(tmp_path / "pairs" / "p1" / "fixed.nii.gz") in err and len(err.splitlines()) == 1, err
+        assert not (tmp_path / "run").exists()
+
+    @pytest.mark.parametrize("key", ["folders", "validation_folders"])
+    def test_an_output_inside_the_pairs_is_refused(self, key, tmp_path, capsys):
+        (tmp_path / "pairs").mkdir()
+        (tmp_path / "tiny.yaml").write_text(TINY_YAML.replace("output: run", "output: pairs/run").replace(
+            "validation_pairs: 4", f"validation_pairs: 4\n  {key}: [pairs]"))
+        assert main(["train", "--config", str(tmp_path / "tiny.yaml")]) == 2
+        assert capsys.readouterr().err == (f"dpcn-med: error: {tmp_path / 'pairs' / 'run'}: is inside data.{key} "
+                                           f"{tmp_path / 'pairs'}, where the run's folder would read as a pair "
+                                           "folder; choose an output folder outside the data\n")
+        assert list((tmp_path / "pairs").iterdir()) == []
+
     @pytest.mark.parametrize("key", ["volumes", "validation_volumes"])
     def test_bad_volume_is_named_and_nothing_written(self, key, tmp_path, capsys):
         (tmp_path / "bad.yaml").write_text(TINY_YAML.replace(f"  {key}: [mni]", f"  {key}: [missing.nii.gz]"))
         assert main(["train", "--config", str(tmp_path / "bad.yaml")]) == 2
         assert "missing.nii.gz: not found" in capsys.readouterr().err
         assert not (tmp_path / "run").exists()  # the output folder is made once the inputs are read
+
+
+def _write_pairs(root: Path, count: int) -> None:
+    """``count`` pair folders of a smoothed 8 mm MNI head and a moved copy, with the ground truth as .tfm."""
+    image = sitk.BinShrink(sitk.SmoothingRecursiveGaussian(mni152_t1(), 4.0), [4, 4, 4])
+    centre = foreground_box(image)[0]
+    for seed in range(count):
+        folder = root / f"p{seed}"
+        folder.mkdir(parents=True)
+        truth = random_similarity(np.random.default_rng(seed), centre, max_shift_mm=10.0)
+        io.write_image(image, folder / "fixed.nii.gz")
+        io.write_image(moved_copy(image, truth), folder / "moving.nii.gz")
+        io.write_transform(truth, folder / "transform.tfm")
 
 
 @pytest.fixture(scope="module")
@@ -321,10 +373,23 @@ def _damage_tensors(run: Path, drop: bool) -> None:
     tensors[name] = tensors[name][:1]
     if drop:
         del tensors[name]
-    io.write_tensors(tensors, run / "checkpoint.safetensors")
+    io.write_tensors(tensors, run / "checkpoint.safetensors", metadata=io.read_tensor_metadata(
+        run / "checkpoint.safetensors"))
 
 
 class TestResume:
+    def test_a_signal_while_saving_waits_for_the_pair(self):
+        """SIGTERM (or Ctrl-C) between the two files of a checkpoint would leave new weights beside an old step."""
+        from dpcn_med.train import loop
+
+        written, before = [], signal.getsignal(signal.SIGTERM)
+        with pytest.raises(KeyboardInterrupt):
+            with loop._interrupts_deferred():
+                os.kill(os.getpid(), signal.SIGTERM)
+                written.append("weights")
+                written.append("description")
+        assert written == ["weights", "description"] and signal.getsignal(signal.SIGTERM) == before
+
     def test_tensor_files_follow_the_umask(self, checkpointed):
         run = checkpointed / "run"
         for name in ("checkpoint", "model"):
@@ -361,6 +426,10 @@ class TestResume:
     @pytest.mark.parametrize("damage, name, message", [
         (lambda run: _damage_json(run, {}), "checkpoint.json", r"not a dpcn_med checkpoint \(no valid step, "
          r"param_groups, optimiser_scalars, config, rows\)"),
+        (lambda run: _damage_json(run, {"step": -5}), "checkpoint.json",
+         r"not a dpcn_med checkpoint \(no valid step\)"),
+        (lambda run: (run / "checkpoint.safetensors").write_bytes(b"garbled"), "checkpoint.safetensors",
+         r"not a readable \.safetensors file .*; train into another output folder, or start afresh"),
         (lambda run: _damage_json(run, {"step": 9}), "checkpoint.json", "is at step 9, past this config's "
          "optimiser.steps 4; ask for more steps"),
         (lambda run: _damage_json(run, {"param_groups": []}), "checkpoint.json", "its optimiser state does not fit "
@@ -368,7 +437,13 @@ class TestResume:
         (lambda run: _damage_tensors(run, drop=False), "checkpoint.safetensors", r"does not fit this model \(1 "
          "tensors missing, unexpected or of another shape, such as "),
         (lambda run: _damage_tensors(run, drop=True), "checkpoint.safetensors", r"does not fit this model \(1 "),
-    ], ids=["empty", "past_the_steps", "optimiser", "reshaped", "missing"])
+        (lambda run: _damage_json(run, {"step": 0}), "checkpoint.safetensors", "holds step 1, checkpoint.json step 0: "
+         r"the two files are from different saves \(one cut short\?\); train into another output folder"),
+        (lambda run: (run / "checkpoint.json").unlink(), "checkpoint.json", "missing beside checkpoint.safetensors"),
+        (lambda run: (run / "checkpoint.safetensors").unlink(), "checkpoint.safetensors", "missing beside "
+         r"checkpoint.json \(a checkpoint is the two files\)"),
+    ], ids=["empty", "negative_step", "garbled_weights", "past_the_steps", "optimiser", "reshaped", "missing", "torn",
+            "no_json", "no_weights"])
     def test_damaged_checkpoint_is_named(self, damage, name, message, checkpointed, tmp_path, capsys):
         folder = shutil.copytree(checkpointed, tmp_path / "copy")
         damage(folder / "run")

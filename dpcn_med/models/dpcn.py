@@ -15,6 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from dpcn_med import __version__
+from dpcn_med.arguments import check_real, check_sequence
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import axis_angle_to_matrix, warp
 from dpcn_med.models.features import FeatureExtractor
@@ -94,9 +95,16 @@ class ModelConfig:
             raise InputError(f"residual_units is {self.residual_units}; expected 0 or more")
         if any(m not in MODALITIES for m in self.modalities) or len(self.modalities) != 2:
             raise InputError(f"modalities {self.modalities!r}: expected two of {', '.join(MODALITIES)}")
-        if len(self.channels) < 2 or (2 * self.bandwidth) % 2 ** (len(self.channels) - 1):
+        downsampling = 2 ** (len(self.channels) - 1)
+        if len(self.channels) < 2 or (2 * self.bandwidth) % downsampling or 2 * self.bandwidth < 2 * downsampling:
+            # one voxel at the deepest level: MONAI's instance norm fails ("more than 1 spatial element")
             raise InputError(f"channels {self.channels!r}: need at least two levels, and the grid size "
-                             f"{2 * self.bandwidth} must be divisible by 2^{len(self.channels) - 1}")
+                             f"{2 * self.bandwidth} must be divisible by 2^{len(self.channels) - 1} and leave at "
+                             "least 2 voxels at the deepest level")
+        check_real("compensation_noise_degrees", self.compensation_noise_degrees, minimum=0.0)
+        check_real("compensation_noise_scale", self.compensation_noise_scale, minimum=0.0)
+        for index, temperature in enumerate(check_sequence("temperatures", self.temperatures, length=3)):
+            check_real(f"temperatures[{index}]", temperature, minimum=0.0, above=True)
         # Complete, so that the saved config says every setting; JSON lists become the dataclasses' tuples again.
         object.__setattr__(self, "preprocessing", _recorded(self.grid_preprocessing()))
         object.__setattr__(self, "solver", _recorded(self.solver_config(), PER_CALL_SOLVER_FIELDS))

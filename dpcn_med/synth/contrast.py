@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from dpcn_med.arguments import check_pair
+from dpcn_med.arguments import check_flag, check_integer, check_pair, check_real
 from dpcn_med.errors import InputError
 from dpcn_med.synth._common import check_volumes, integers, normal, uniform
 
@@ -44,6 +44,17 @@ class ContrastConfig:
     factor_range: tuple[float, float] = (1.0, 3.0)
     noise_std_range: tuple[float, float] = (0.0, 0.05)
     rician: bool = True
+
+    def __post_init__(self) -> None:
+        """Refuse what would make NaN or blank volumes (a NaN bias strength did), naming the field."""
+        check_integer("knots", self.knots, minimum=2)
+        check_flag("monotonic", self.monotonic)
+        check_real("bias_strength", self.bias_strength, minimum=0.0)
+        check_integer("bias_order", self.bias_order, minimum=1)
+        check_pair("sigma_range", self.sigma_range, minimum=0.0, equal=True)
+        check_pair("factor_range", self.factor_range, minimum=1.0, equal=True)
+        check_pair("noise_std_range", self.noise_std_range, minimum=0.0, equal=True)
+        check_flag("rician", self.rician)
 
 
 def _per_sample(values: Tensor) -> Tensor:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import torch
@@ -69,8 +68,10 @@ class PairConfig:
         check_pair("scale_range", self.scale_range, minimum=0.0, above=True, equal=True)
         if not 0 <= self.crop_probability <= 1:
             raise InputError(f"crop_probability is {self.crop_probability}; expected a probability in [0, 1]")
-        if not 0 <= self.max_shift_fraction < math.inf:
-            raise InputError(f"max_shift_fraction is {self.max_shift_fraction}; expected a finite fraction of N >= 0")
+        if not 0 <= self.max_shift_fraction <= 0.5:  # a circular correlation tells a shift only up to N / 2
+            raise InputError(f"max_shift_fraction is {self.max_shift_fraction}; expected a fraction of N in [0, 0.5] "
+                             "(a shift past half the grid is a wrap-around to phase correlation, and moves the object "
+                             "off the grid)")
 
 
 def _random_poses(batch: int, size: int, generator: torch.Generator, config: PairConfig, like: Tensor) -> PoseTarget:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from dpcn_med.arguments import check_pair
+from dpcn_med.arguments import check_pair, check_real
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import affine_points, grid_centre, sample
 from dpcn_med.synth._common import check_volumes, normal, uniform
@@ -40,6 +40,15 @@ class UltrasoundConfig:
     bone_attenuation: float = 60.0
     reflection_gain: float = 1.0
     scatter_gain: float = 0.2
+
+    def __post_init__(self) -> None:
+        """Refuse what would make NaN or blank volumes (an infinite impedance gain, a NaN standoff did)."""
+        check_pair("half_angle_degrees", self.half_angle_degrees, minimum=0.0, maximum=89.0, equal=True)
+        check_pair("depth_range", self.depth_range, minimum=0.0, equal=True)
+        for name in ("standoff", "impedance_gain", "attenuation", "bone_attenuation", "reflection_gain",
+                     "scatter_gain"):
+            check_real(name, getattr(self, name), minimum=0.0)
+        check_real("bone_level", self.bone_level, minimum=0.0, maximum=1.0, below=True)
 
 
 def _probe_directions(probe: Tensor | None, batch: int, generator: torch.Generator, like: Tensor) -> Tensor:

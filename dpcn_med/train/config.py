@@ -21,6 +21,7 @@ from typing import Any
 
 import yaml
 
+from dpcn_med.arguments import check_integer
 from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.models import ModelConfig
 from dpcn_med.preprocess import Preprocessing
@@ -63,6 +64,7 @@ class DataConfig:
                 raise InputError(f"{name} is empty; list at least one volume (a path or {', '.join(BUILT_IN_VOLUMES)})")
         if self.validation_pairs < 1:
             raise InputError(f"validation_pairs is {self.validation_pairs}; expected at least 1")
+        check_integer("validation_seed", self.validation_seed, minimum=0, maximum=MAX_SEED)
         if not 0 <= self.folder_fraction <= 1:
             raise InputError(f"folder_fraction is {self.folder_fraction}; expected a fraction of the steps in [0, 1]")
         check_crop(self.folder_crop, "folder_crop")
@@ -137,8 +139,9 @@ class TrainConfig:
     resume: bool = True
 
     def __post_init__(self) -> None:
-        if not self.output:
+        if not self.output.strip():
             raise InputError("output is empty; name the folder the run writes into")
+        check_integer("seed", self.seed, minimum=0, maximum=MAX_SEED)
         for name in ("log_every", "validate_every", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise InputError(f"{name} is {getattr(self, name)}; expected a number of steps >= 1")
@@ -146,6 +149,10 @@ class TrainConfig:
     def to_json(self) -> dict:
         return asdict(self)
 
+
+MAX_SEED = 2 ** 32 - 1
+"""Seeds are unsigned 32-bit integers: numpy's SeedSequence refuses negative ones, and the loop's per-step seeds
+(``seed * 1_000_003 + ...``) must fit torch's 64-bit generator seed."""
 
 _SETTINGS_FIELDS = {(ModelConfig, "preprocessing"): Preprocessing, (ModelConfig, "solver"): SolverConfig}
 """Mapping fields whose entries are the fields of another dataclass, and are checked as such."""
@@ -270,6 +277,8 @@ def load_config(path: str | os.PathLike) -> TrainConfig:
             message names the file and the key).
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; give the YAML config file (training/configs/ has examples)")
     if not path.is_file():
         raise InputNotFoundError(f"{path}: not found (no such file); check the path")
     try:

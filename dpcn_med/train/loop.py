@@ -3,8 +3,8 @@
 Single process, or one process per device under ``torchrun`` with DistributedDataParallel (each rank draws its own
 pairs; rank 0 validates, logs and writes). Everything a run writes goes to ``config.output``:
 
-* ``checkpoint.safetensors`` + ``checkpoint.json``: weights and optimiser state, the step, the config (resumed from
-  when ``config.resume``, if the config's :data:`MUST_MATCH_ON_RESUME` settings are the checkpoint's);
+* ``checkpoint.safetensors`` + ``checkpoint.json``: weights and optimiser state, the step (in both), the config
+  (resumed from when ``config.resume``, if the config's :data:`MUST_MATCH_ON_RESUME` settings are the checkpoint's);
 * ``log.csv``: a row per logged step (losses, rate, pairs per second) and per validation (success, median errors);
 * ``training.png``: the losses and the validation success against steps;
 * ``model.safetensors`` + ``model.json``: the final model with its training record (:func:`dpcn_med.models.save_model`).
@@ -12,10 +12,14 @@ pairs; rank 0 validates, logs and writes). Everything a run writes goes to ``con
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import signal
+import threading
 import time
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -91,12 +95,31 @@ def evaluate(model: DPCN, pairs: list[tuple[Tensor, Tensor, PoseTarget]]) -> dic
 
 def _real_pairs(roots: tuple[str, ...], config: TrainConfig, *, crop: tuple[float, float] | None, seed: int
                 ) -> torch.utils.data.ConcatDataset | None:
-    """The folders' real pairs as one dataset, or ``None`` without folders."""
+    """The folders' real pairs as one dataset, every pair read and prepared now (kept for the run), or ``None``
+    without folders.
+
+    Raises:
+        InputError: an unusable pair, before the output folder is made: read on first use, a broken pair surfaced
+            mid-run, after checkpoints.
+    """
     if not roots:
         return None
-    return torch.utils.data.ConcatDataset([FolderPairs(root, config.model.bandwidth, crop=crop, seed=seed,
-                                                       preprocessing=config.model.grid_preprocessing())
-                                           for root in roots])
+    datasets = [FolderPairs(root, config.model.bandwidth, crop=crop, seed=seed,
+                            preprocessing=config.model.grid_preprocessing()) for root in roots]
+    for dataset in datasets:
+        for index in range(len(dataset)):
+            dataset.grids(index)
+    return torch.utils.data.ConcatDataset(datasets)
+
+
+def _check_output_outside_data(output: Path, config: TrainConfig) -> None:
+    """Refuse an output folder inside a folder of pairs: the run's folder would read as a broken pair next time."""
+    for key in ("folders", "validation_folders"):
+        for root in getattr(config.data, key):
+            inside = os.path.realpath(output)
+            if os.path.commonpath([inside, os.path.realpath(root)]) == os.path.realpath(root):
+                raise InputError(f"{output}: is inside data.{key} {root}, where the run's folder would read as a pair "
+                                 "folder; choose an output folder outside the data")
 
 
 def _to(batch: tuple[Tensor, Tensor, PoseTarget], device: torch.device) -> tuple[Tensor, Tensor, PoseTarget]:
@@ -129,9 +152,29 @@ def save_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, step: int, co
             else:
                 scalars[f"{index}.{name}"] = value
     weights, description = _checkpoint_paths(Path(config.output))
-    io.write_tensors(tensors, weights)
-    io.write_json({"step": step, "param_groups": state["param_groups"], "optimiser_scalars": scalars,
-                   "config": config.to_json(), "rows": rows, "version": __version__}, description)
+    with _interrupts_deferred():  # each file is atomic; the pair must be too (load_checkpoint checks the step)
+        io.write_tensors(tensors, weights, metadata={"step": str(step)})
+        io.write_json({"step": step, "param_groups": state["param_groups"], "optimiser_scalars": scalars,
+                       "config": config.to_json(), "rows": rows, "version": __version__}, description)
+
+
+@contextlib.contextmanager
+def _interrupts_deferred() -> Iterator[None]:
+    """Hold Ctrl-C and SIGTERM (which the command line turns into ``KeyboardInterrupt``) until the block ends, then
+    raise; outside the main thread, where handlers cannot be set, run the block as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    signals = (signal.SIGINT, signal.SIGTERM)
+    previous = [signal.signal(number, lambda number, frame: received.append(number)) for number in signals]
+    try:
+        yield
+    finally:
+        for number, handler in zip(signals, previous, strict=True):
+            signal.signal(number, handler)
+    if received:
+        raise KeyboardInterrupt
 
 
 _ABSENT = object()
@@ -187,12 +230,16 @@ def load_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, config: Train
             ``config.optimiser.steps``; the message names the file and the way out.
     """
     weights, description = _checkpoint_paths(Path(config.output))
-    if not (config.resume and weights.is_file() and description.is_file()):
-        return 0, []
     afresh = "train into another output folder, or start afresh over this one with --restart (resume: false)"
+    if not config.resume or not (weights.exists() or description.exists()):
+        return 0, []
+    for missing, present in ((weights, description), (description, weights)):
+        if not missing.exists():  # starting afresh would overwrite the other half at the first checkpoint
+            raise InputError(f"{missing}: missing beside {present.name} (a checkpoint is the two files); {afresh}")
     saved = io.read_json(description)
     wrong = [key for key, kind in CHECKPOINT_ENTRIES.items()
-             if not (isinstance(saved, dict) and isinstance(saved.get(key), kind))]
+             if not (isinstance(saved, dict) and isinstance(saved.get(key), kind))
+             or (key == "step" and (isinstance(saved[key], bool) or saved[key] < 0))]
     if wrong:
         raise InputError(f"{description}: not a dpcn_med checkpoint (no valid {', '.join(wrong)}); {afresh}")
     settings = _resume_settings(saved["config"]), _resume_settings(json.loads(json.dumps(config.to_json())))
@@ -205,7 +252,13 @@ def load_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, config: Train
     if saved["step"] > config.optimiser.steps:
         raise InputError(f"{description}: is at step {saved['step']}, past this config's optimiser.steps "
                          f"{config.optimiser.steps}; ask for more steps, or {afresh}")
-    tensors = io.read_tensors(weights)
+    try:
+        tensors, step = io.read_tensors(weights), io.read_tensor_metadata(weights).get("step")
+    except InputError as error:
+        raise InputError(f"{error}; {afresh}") from None
+    if step != str(saved["step"]):
+        raise InputError(f"{weights}: holds step {step}, {description.name} step {saved['step']}: the two files are "
+                         f"from different saves (one cut short?); {afresh}")
     model_state = {name[len("model."):]: t for name, t in tensors.items() if name.startswith("model.")}
     shapes = {name: tensor.shape for name, tensor in unique_state(model).items()}
     misfits = sorted(set(shapes) ^ set(model_state)) + sorted(
@@ -261,8 +314,9 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
     Returns:
         ``(model, record)``: the trained (unwrapped) model on its device and the training record saved with it.
     """
-    process = distributed.start(config.device)
     output = Path(config.output)
+    _check_output_outside_data(output, config)
+    process = distributed.start(config.device)
     torch.manual_seed(config.seed)  # the same initial weights on every rank
     model = DPCN(config.model).to(process.device).train()
     optimiser = torch.optim.AdamW(model.parameters(), lr=config.optimiser.learning_rate,
