@@ -162,6 +162,8 @@ BAD_CONFIGS = {  # (text of TINY_YAML, its replacement, the message's key words)
                      r"data\.pair\.ultrasound\.standoff is nan"),
     "shift_past_half": ("max_shift_fraction: 0.1", "max_shift_fraction: 100", r"data\.pair\.max_shift_fraction is "
                         r"100\.0; expected a fraction of N in \[0, 0\.5\]"),
+    "unknown_device": ("device: cpu", "device: gpu", r"tiny\.yaml: device is 'gpu'; expected auto, cpu, cuda or "
+                       "cuda:N"),
     "zero_temperature": ("residual_units: 0,", "residual_units: 0, temperatures: [0, 1, 1],",
                          r"model: temperatures\[0\] is 0\.0; expected a finite number > 0"),
     "nan_compensation": ("residual_units: 0,", "residual_units: 0, compensation_noise_degrees: .nan,",
@@ -217,9 +219,9 @@ class TestBadConfig:
         assert [p.name for p in tmp_path.iterdir()] == ["tiny.yaml"]
 
     @pytest.mark.parametrize("device, message", [
-        ("tpu", "device 'tpu' is not valid; use auto, cpu, cuda or cuda:N"),
-        ("gpu", "device 'gpu' is not valid"),
-        ("mps", "device 'mps' is not supported"),
+        ("tpu", "device is 'tpu'; expected auto, cpu, cuda or cuda:N"),
+        ("gpu", "device is 'gpu'; expected auto, cpu, cuda or cuda:N"),
+        ("mps", "device is 'mps'; expected auto, cpu, cuda or cuda:N"),
         pytest.param("cuda", "device 'cuda' asked for, but this torch build sees no CUDA GPU",
                      marks=pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")),
     ])

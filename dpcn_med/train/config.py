@@ -142,6 +142,9 @@ class TrainConfig:
         if not self.output.strip():
             raise InputError("output is empty; name the folder the run writes into")
         check_integer("seed", self.seed, minimum=0, maximum=MAX_SEED)
+        if not isinstance(self.device, str) or not re.fullmatch(r"auto|cpu|cuda(:\d+)?", self.device):
+            # the names only: whether this machine has the GPU is for distributed.start
+            raise InputError(f"device is {self.device!r}; expected auto, cpu, cuda or cuda:N")
         for name in ("log_every", "validate_every", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise InputError(f"{name} is {getattr(self, name)}; expected a number of steps >= 1")
