@@ -314,6 +314,20 @@ class TestProcess:
         assert job.returncode == 2 and job.finished
         assert job.error_message() == "dpcn-med: error: moving.nrrd: holds NaN"
 
+    def test_bytes_that_are_not_utf8_neither_hang_nor_hide_the_exit(self):
+        """An undecodable byte ended the reader thread: no exit event, the job never finished (Cancel forever)."""
+        job = Job([sys.executable, "-c", "import sys; sys.stdout.buffer.write(b'caf\\xe9\\n'); sys.exit(2)"])
+        events = job.wait(30)
+        assert job.finished and job.returncode == 2 and events[-1].kind == "exit"
+        assert job.error_message() == "caf\ufffd"
+
+    def test_the_child_prints_non_ascii_on_any_code_page(self):
+        """A child on a legacy code page (Windows) failed printing a non-ASCII path, after its work was done."""
+        job = Job([sys.executable, "-c", "print('Łukasz', flush=True)"],
+                  environment={**os.environ, "PYTHONIOENCODING": "cp1252"})
+        job.wait(30)
+        assert job.returncode == 0 and job.log == ["Łukasz"], job.log
+
     def test_cancel_stops_the_process(self):
         job = Job([sys.executable, "-c", "import time; print('started', flush=True); time.sleep(60)"])
         started = time.perf_counter()
@@ -550,6 +564,56 @@ class TestRegistrationFailures:
         fixed.SetAndObserveTransformNodeID(output.GetID())
         with pytest.raises(ValueError, match="result: the fixed volume depends on this output transform"):
             Registration(fixed, moving, output_transform=output)
+        fixed.SetAndObserveTransformNodeID(None)
+        between = linear_transform(scene, rotation_ras(10, (0, 0, 1), (1, 2, 3)), "fine-tune")
+        between.SetAndObserveTransformNodeID(output.GetID())
+        moving.SetAndObserveTransformNodeID(between.GetID())  # MRML would refuse output's new parent: a cycle
+        with pytest.raises(ValueError, match="result: the moving volume depends on this output transform"):
+            Registration(fixed, moving, output_transform=output)
+        moving.SetAndObserveTransformNodeID(output.GetID())  # directly under it: a repeated registration, allowed
+        Registration(fixed, moving, QUICK, output_transform=output, python="/bin/true").cancel()
+
+    def test_errors_name_the_nodes_not_the_deleted_files(self, pair, tmp_path):
+        scene, fixed, moving = pair
+        moving.SetName("CTBrain")
+        image_to_volume(sitk.Image(turned_oblique_image(0).GetSize(), sitk.sitkInt16), moving)  # all zero
+        registration = Registration(fixed, moving, QUICK, workspace=str(tmp_path))
+        with pytest.raises(RegistrationError) as caught:
+            registration.finish()
+        assert "dpcn-med: error: CTBrain (the moving volume): all voxels equal 0" in str(caught.value)
+        assert "DPCNRegistration-" not in str(caught.value)
+
+    def test_a_volume_removed_while_it_runs_changes_nothing(self, pair, tmp_path, complete_result):
+        scene, fixed, moving = pair
+        registration = Registration(fixed, moving, QUICK, python=self.child_writing(complete_result, tmp_path),
+                                    workspace=str(tmp_path))
+        nodes = scene.GetNumberOfNodes()
+        scene.RemoveNode(moving)
+        with pytest.raises(RegistrationError, match="moving: was removed from the scene while it was being "
+                                                    "registered"):
+            registration.finish()
+        assert scene.GetNumberOfNodes() == nodes - 1 and not registration.folder.exists()
+
+    def test_a_moving_mask_covers_the_same_voxels_when_registered_again(self, pair, tmp_path, complete_result):
+        """The second Apply registers the moving volume without the first result; its mask was placed with it, and
+        came out shifted or refused."""
+        scene, fixed, moving = pair
+        size = moving.GetImageData().GetDimensions()
+        label = sitk.Image(size, sitk.sitkUInt8)
+        label.CopyInformation(volume_to_image(moving))
+        label[size[0] // 4:size[0] // 2, size[1] // 4:size[1] // 2, :] = 1
+        mask = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode")
+        image_to_volume(label, mask)
+        first = Registration(fixed, moving, QUICK, moving_mask=mask,
+                             python=self.child_writing(complete_result, tmp_path), workspace=str(tmp_path))
+        sent = sitk.ReadImage(str(first.folder / "moving_mask.nrrd"))
+        output = first.finish().transform
+        output.SetMatrixTransformToParent(array_to_matrix(rotation_ras(0, (0, 0, 1), (3 * 1.5, 0, 0))))
+        again = Registration(fixed, moving, QUICK, moving_mask=mask, output_transform=output,
+                             python=self.child_writing(complete_result, tmp_path), workspace=str(tmp_path))
+        assert np.array_equal(sitk.GetArrayFromImage(sitk.ReadImage(str(again.folder / "moving_mask.nrrd"))),
+                              sitk.GetArrayFromImage(sent))
+        again.cancel()
 
     def test_a_failed_process_changes_nothing_and_leaves_no_files(self, pair, tmp_path):
         scene, fixed, moving = pair

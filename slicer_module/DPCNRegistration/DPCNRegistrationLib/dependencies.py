@@ -1,8 +1,9 @@
 """What the module needs in Slicer's Python, and how to install it without breaking Slicer.
 
 torch comes through the PyTorch extension (it picks the CUDA build for the machine); dpcn_med from the checkout the
-module lives in (``pip install <checkout>``) or else from the package index. Slicer bundles SimpleITK, VTK and numpy
-built for itself: pip must not replace them, so dpcn_med's own requirements are installed with those left out.
+module lives in (``pip install <checkout>``) or else from the package index. Slicer bundles SimpleITK and VTK built
+for itself: pip must not replace them, so dpcn_med's own requirements are installed with those left out. numpy is
+passed with dpcn_med's lower bound, which the numpy Slicer bundles meets, so pip keeps Slicer's.
 """
 
 from __future__ import annotations

@@ -82,6 +82,7 @@ class Registration:
         self.base = base_transform_node(moving, output_transform)
         self.started = time.perf_counter()
         self.folder = Path(tempfile.mkdtemp(prefix="DPCNRegistration-", dir=workspace))
+        self.names: dict[str, str] = {}  # the temporary files' paths and the nodes they hold, for dpcn-med's messages
         try:
             paths = {}
             for role, volume, world, mask in (("fixed", fixed, parent_to_world(fixed), fixed_mask),
@@ -89,9 +90,14 @@ class Registration:
                 image = volume_to_image(volume, world=world)
                 paths[role] = self.folder / f"{role}.nrrd"
                 sitk.WriteImage(image, str(paths[role]))
+                self.names[str(paths[role])] = f"{volume.GetName()} (the {role} volume)"
                 if mask is not None:
                     paths[f"{role}_mask"] = self.folder / f"{role}_mask.nrrd"
-                    sitk.WriteImage(mask_on_volume(mask, volume, image), str(paths[f"{role}_mask"]))
+                    # Both in the frame registered in: without the output transform of an earlier run.
+                    mask_world = transform_to_world(base_transform_node(mask, output_transform))
+                    sitk.WriteImage(mask_on_volume(mask, volume, image, volume_world=world, mask_world=mask_world),
+                                    str(paths[f"{role}_mask"]))
+                    self.names[str(paths[f"{role}_mask"])] = f"{mask.GetName()} (the {role} mask)"
             self.job = Job(process.command(paths["fixed"], paths["moving"], self.folder / "result", options,
                                            fixed_mask=paths.get("fixed_mask"), moving_mask=paths.get("moving_mask"),
                                            resampled=output_volume is not None, python=python))
@@ -125,7 +131,10 @@ class Registration:
             if self.job.cancelled:
                 raise RegistrationError("the registration was cancelled")
             if self.job.returncode not in (process.EXIT_OK, process.EXIT_LOW_CONFIDENCE):
-                raise RegistrationError(self.job.error_message())
+                message = self.job.error_message()
+                for path, name in self.names.items():  # the files are gone; the nodes are what the user knows
+                    message = message.replace(path, name)
+                raise RegistrationError(message)
             return self._load(self.folder / "result")
         finally:
             shutil.rmtree(self.folder, ignore_errors=True)
@@ -137,6 +146,10 @@ class Registration:
         Raises:
             RegistrationError: a file is missing or unreadable, or report.json lacks a value this module shows.
         """
+        for node in (self.fixed, self.moving, self.output_transform, self.output_volume):
+            if node is not None and not self.scene.IsNodePresent(node):
+                raise RegistrationError(f"{node.GetName()}: was removed from the scene while it was being registered; "
+                                        "the scene is left as it is")
         report = _read_report(folder / "report.json")
         path = folder / "transform.tfm"
         _require(path)
@@ -238,9 +251,12 @@ def _check_inputs(fixed, moving, output_transform, output_volume, masks=(None, N
         raise ValueError(f"{output_volume.GetName()}: the output volume is an input; choose or create another "
                          "(inputs are never overwritten)")
     if output_transform is not None:
-        parent = fixed.GetParentTransformNode()
-        while parent is not None:
-            if parent.GetID() == output_transform.GetID():
-                raise ValueError(f"{output_transform.GetName()}: the fixed volume depends on this output transform; "
-                                 "choose another output transform")
-            parent = parent.GetParentTransformNode()
+        for role, parent in (("fixed", fixed.GetParentTransformNode()),
+                             ("moving", base_transform_node(moving, output_transform))):
+            # The moving volume directly under the output is a repeated registration; deeper, MRML would refuse to
+            # put the output under the moving volume's base (a cycle) and the result would land elsewhere.
+            while parent is not None:
+                if parent.GetID() == output_transform.GetID():
+                    raise ValueError(f"{output_transform.GetName()}: the {role} volume depends on this output "
+                                     "transform (through another transform); choose another output transform")
+                parent = parent.GetParentTransformNode()

@@ -99,8 +99,12 @@ class Job:
         self.log: list[str] = []
         self.returncode: int | None = None
         self.cancelled = False
+        # UTF-8 both ways, undecodable bytes replaced: a byte the reader cannot decode ended its thread, and the job
+        # never finished; a child on a legacy code page failed to print a non-ASCII path after its work.
+        environment = {**(os.environ if environment is None else environment), "PYTHONUTF8": "1",
+                       "PYTHONIOENCODING": "utf-8"}
         self._process = subprocess.Popen(arguments, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                         bufsize=1, env=environment)
+                                         encoding="utf-8", errors="replace", bufsize=1, env=environment)
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 

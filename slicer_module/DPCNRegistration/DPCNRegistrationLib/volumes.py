@@ -91,7 +91,8 @@ def volume_to_image(node, *, world: np.ndarray | None = None) -> sitk.Image:
     return image
 
 
-def mask_on_volume(mask, volume, image: sitk.Image) -> sitk.Image:
+def mask_on_volume(mask, volume, image: sitk.Image, *, volume_world: np.ndarray | None = None,
+                   mask_world: np.ndarray | None = None) -> sitk.Image:
     """A label map as a binary mask on a volume's voxels, for ``dpcn-med register --fixed-mask`` / ``--moving-mask``.
 
     Both nodes are taken as shown (linear parent transforms applied): the mask covers the voxels of ``volume`` that
@@ -101,6 +102,8 @@ def mask_on_volume(mask, volume, image: sitk.Image) -> sitk.Image:
         mask: label map (or scalar) volume node; any non-zero voxel is inside.
         volume: the volume node the mask restricts.
         image: ``volume`` as it is sent to dpcn-med (:func:`volume_to_image`); the mask gets its geometry.
+        volume_world, mask_world: ``(4, 4)`` RAS to-world matrices to place the two nodes with, instead of their
+            parent transforms (:func:`parent_to_world`): the frame the volume is registered in.
 
     Returns:
         sitkUInt8 image, 1 inside and 0 outside, on ``image``'s grid.
@@ -108,9 +111,10 @@ def mask_on_volume(mask, volume, image: sitk.Image) -> sitk.Image:
     Raises:
         ValueError: the mask holds no image data or covers none of the volume's voxels.
     """
-    shown = volume_to_image(mask, world=parent_to_world(mask))
+    shown = volume_to_image(mask, world=parent_to_world(mask) if mask_world is None else mask_world)
     grid = sitk.Image(image.GetSize(), sitk.sitkUInt8)
-    spacing, direction, origin = _lps_geometry(volume, parent_to_world(volume))
+    spacing, direction, origin = _lps_geometry(volume, parent_to_world(volume) if volume_world is None else
+                                               volume_world)
     grid.SetSpacing(spacing)
     grid.SetDirection(direction)
     grid.SetOrigin(origin)
