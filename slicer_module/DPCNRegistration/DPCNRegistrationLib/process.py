@@ -104,7 +104,9 @@ class Job:
         environment = {**(os.environ if environment is None else environment), "PYTHONUTF8": "1",
                        "PYTHONIOENCODING": "utf-8"}
         self._process = subprocess.Popen(arguments, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                         encoding="utf-8", errors="replace", bufsize=1, env=environment)
+                                         encoding="utf-8", errors="replace", bufsize=1, env=environment,
+                                         # Windows: no console window beside Slicer's (as Slicer's own launcher)
+                                         creationflags=getattr(subprocess, "CREATE_NO_WINDOW", 0))
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
