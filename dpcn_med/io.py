@@ -102,7 +102,11 @@ def check_volume(image: sitk.Image, name: str = "image") -> sitk.Image:
     if image.GetPixelID() in (sitk.sitkComplexFloat32, sitk.sitkComplexFloat64):
         raise InputError(f"{name}: has complex voxels; expected a real-valued volume (keep the magnitude: "
                          "sitk.ComplexToModulus)")
+    if image.GetNumberOfComponentsPerPixel() == 1 and "vector" in image.GetPixelIDTypeAsString():
+        raise InputError(f"{name}: is a vector image of one component ({image.GetPixelIDTypeAsString()}); expected "
+                         "a scalar volume: sitk.VectorIndexSelectionCast(image, 0)")
     _check_spacing(name, image.GetSpacing())
+    _check_origin(name, image.GetOrigin())
     _check_direction(name, image.GetDirection())
     array = sitk.GetArrayViewFromImage(image)  # a view: ``image`` must stay referenced while it is used
     if array.dtype.kind == "f":
@@ -382,9 +386,28 @@ def _check_spacing(name: str, spacing: tuple[float, ...]) -> None:
                      "(image.SetSpacing) and save the volume again")
 
 
+MAX_ORIGIN_MM = 1e5
+"""Largest coordinate of a volume's origin, mm (100 m): scanner frames lie within metres of their isocentre. A NaN
+origin hung the foreground search; one of 1e9 mm left float64 too few digits for the pose (48 mm off)."""
+
+
+def _check_origin(name: str, origin: tuple[float, ...]) -> None:
+    if not all(math.isfinite(o) for o in origin):
+        problem = "is not finite"
+    elif max(abs(o) for o in origin) > MAX_ORIGIN_MM:
+        problem = f"lies over {MAX_ORIGIN_MM / 1000:g} m from the scanner's origin (a broken header?)"
+    else:
+        return
+    raise InputError(f"{name}: origin {origin} mm {problem}; set the origin in millimetres (image.SetOrigin) and "
+                     "save the volume again")
+
+
 def _check_direction(name: str, direction: tuple[float, ...]) -> None:
     """Refuse sheared or scaled voxel axes: the registration, the resampled output and NIfTI need orthonormal ones."""
     matrix = np.reshape(direction, (3, 3))
+    if not np.isfinite(matrix).all():  # NaN passes the orthonormality test below
+        raise InputError(f"{name}: its direction cosines {direction} are not finite; set the direction "
+                         "(image.SetDirection) and save the volume again")
     error = float(np.abs(matrix.T @ matrix - np.eye(3)).max())
     if error > GRID_TOLERANCE:
         raise InputError(f"{name}: its direction cosines {tuple(round(d, 4) for d in direction)} are not orthonormal "
@@ -715,9 +738,8 @@ def write_image(image: sitk.Image, path: str | os.PathLike, *, compress: bool = 
         OSError: the file came out short (a full disk, a file-size limit); ``path`` is left as it was.
     """
     target = Path(path)
-    if not target.name.lower().endswith(IMAGE_WRITE_SUFFIXES):
-        raise InputError(f"{target}: cannot write an image with this suffix; use {', '.join(IMAGE_WRITE_SUFFIXES)} "
-                         "(.mhd and .nhdr keep the voxels in a second file, which one rename cannot move)")
+    _check_write_suffix(target, IMAGE_WRITE_SUFFIXES, "an image", " (.mhd and .nhdr keep the voxels in a second "
+                        "file, which one rename cannot move)")
     with atomic_output(target) as temporary:
         sitk.WriteImage(image, str(temporary), useCompression=compress)
         _check_written(target, lambda: _check_nifti_length(temporary))
@@ -731,12 +753,20 @@ def write_transform(transform: sitk.Transform, path: str | os.PathLike) -> None:
         OSError: the file came out short (a full disk, a file-size limit); ``path`` is left as it was.
     """
     target = Path(path)
-    if not target.name.lower().endswith(TRANSFORM_SUFFIXES):
-        raise InputError(f"{target}: cannot write a transform with this suffix; use {', '.join(TRANSFORM_SUFFIXES)}")
+    _check_write_suffix(target, TRANSFORM_SUFFIXES, "a transform")
+    if not (np.isfinite(transform.GetParameters()).all() and np.isfinite(transform.GetFixedParameters()).all()):
+        raise InputError(f"{target}: the transform holds NaN or infinite parameters; nothing written")
     with atomic_output(target) as temporary:
         sitk.WriteTransform(transform, str(temporary))
         if target.suffix.lower() in (".tfm", ".txt"):  # the HDF5 writer raises on a short write itself
             _check_written(target, lambda: _check_same_transform(temporary, transform))
+
+
+def _check_write_suffix(target: Path, suffixes: tuple[str, ...], what: str, note: str = "") -> None:
+    """Refuse a suffix SimpleITK has no writer for; it picks the writer by the suffix as spelt (``.MHA`` has none)."""
+    if not target.name.endswith(suffixes):
+        case = " in lower case" if target.name.lower().endswith(suffixes) else ""
+        raise InputError(f"{target}: cannot write {what} with this suffix; use {', '.join(suffixes)}{case}{note}")
 
 
 def _check_written(target: Path, check: Callable[[], None]) -> None:

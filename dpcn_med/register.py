@@ -256,12 +256,18 @@ def load_image(source: ImageLike, role: str = "image") -> sitk.Image:
     (checked as a file's voxels are, :func:`dpcn_med.io.check_volume`; ``role``, such as "fixed image", names it in
     messages)."""
     if isinstance(source, sitk.Image):
-        return io.check_volume(source, role)
-    if io.is_mesh_path(source):
+        image = io.check_volume(source, role)
+    elif io.is_mesh_path(source):
         from dpcn_med.preprocess import voxelize
 
-        return voxelize(io.read_mesh(source))
-    return io.read_image(source)
+        image = voxelize(io.read_mesh(source))
+    else:
+        image = io.read_image(source)
+    if min(image.GetSize()) < MIN_LEVEL_VOXELS:  # the refinement's smoothing (ITK's recursive Gaussian) needs 4
+        name = role if isinstance(source, sitk.Image) else os.fspath(source)
+        raise InputError(f"{name}: is {min(image.GetSize())} voxels thick (size {image.GetSize()}); registering "
+                         f"needs at least {MIN_LEVEL_VOXELS} along each axis")
+    return image
 
 
 def _load_mask(source: ImageLike | None, image: sitk.Image, role: str) -> sitk.Image | None:

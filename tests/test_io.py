@@ -276,6 +276,26 @@ class TestReadImage:
         with pytest.raises(InputError, match=message):
             io.read_image(path)
 
+    @pytest.mark.parametrize(("change", "message"), [
+        (lambda image: image.SetOrigin((float("nan"), 0.0, 0.0)), r"origin \(nan, 0\.0, 0\.0\) mm is not finite"),
+        (lambda image: image.SetOrigin((0.0, float("inf"), 0.0)), r"origin \(0\.0, inf, 0\.0\) mm is not finite"),
+        (lambda image: image.SetOrigin((1e12, 0.0, 0.0)), r"origin \(1000000000000\.0, 0\.0, 0\.0\) mm lies over "
+         "100 m from the scanner's origin"),
+        (lambda image: image.SetDirection((float("nan"), 0, 0, 0, 1, 0, 0, 0, 1)), r"its direction cosines \(nan, "
+         r".*\) are not finite"),
+    ], ids=["nan_origin", "infinite_origin", "far_origin", "nan_direction"])
+    def test_absurd_geometry_in_memory(self, volume, change, message):
+        """A NaN origin or direction passed every check, then hung the foreground search."""
+        image = sitk.Image(volume)
+        change(image)
+        with pytest.raises(InputError, match="^in memory: " + message):
+            io.check_volume(image, "in memory")
+
+    def test_a_vector_image_of_one_component_is_refused(self, volume):
+        with pytest.raises(InputError, match=r"^v: is a vector image of one component \(vector of 32-bit float\); "
+                           "expected a scalar volume"):
+            io.check_volume(sitk.Compose(sitk.Cast(volume, sitk.sitkFloat32)), "v")
+
     def test_header_claiming_more_than_memory(self, tmp_path):
         # Checked from the header alone: the voxel file it names does not exist.
         path = tmp_path / "huge.mhd"
@@ -658,6 +678,16 @@ class TestWriteTransform:
     def test_unknown_suffix(self, tmp_path):
         with pytest.raises(InputError, match=r"t\.mat: cannot write a transform with this suffix; use \.tfm"):
             io.write_transform(similarity(), tmp_path / "t.mat")
+
+    def test_upper_case_suffixes_and_nan_parameters_write_nothing(self, tmp_path, volume):
+        """SimpleITK picks a writer by the suffix as spelt: .MHA left two temporary files, .TFM raised from ITK."""
+        with pytest.raises(InputError, match=r"t\.TFM: cannot write a transform with this suffix; use .* in lower "):
+            io.write_transform(similarity(), tmp_path / "t.TFM")
+        with pytest.raises(InputError, match=r"a\.MHA: cannot write an image with this suffix; use .* in lower case"):
+            io.write_image(volume, tmp_path / "a.MHA")
+        with pytest.raises(InputError, match=r"t\.tfm: the transform holds NaN or infinite parameters"):
+            io.write_transform(sitk.TranslationTransform(3, (float("nan"), 0, 0)), tmp_path / "t.tfm")
+        assert os.listdir(tmp_path) == []
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="file-size limits (RLIMIT_FSIZE) are POSIX")

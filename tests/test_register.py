@@ -475,6 +475,13 @@ class TestErrors:
         with pytest.raises(InputError, match=r"corner\.nii\.gz: holds no foreground of its image"):
             register(fixed, fixed, fixed_mask=tmp_path / "corner.nii.gz")
 
+    def test_a_volume_thinner_than_four_voxels_is_refused_by_name(self):
+        """Three slices passed every check, then ITK's recursive Gaussian raised in the refinement's pyramid."""
+        fixed = mni_2mm()
+        with pytest.raises(InputError, match=r"^moving image: is 3 voxels thick \(size \(98, 116, 3\)\); registering "
+                           "needs at least 4 along each axis"):
+            register(fixed, fixed[:, :, 45:48])
+
     @pytest.mark.parametrize("role", ["fixed", "moving"])
     def test_a_mask_too_small_to_refine_is_refused_by_name(self, role):
         """ITK's metric failed on masks 1 to 5 voxels wide (an internal error, not a message); the refinement's
