@@ -114,10 +114,11 @@ def _real_pairs(roots: tuple[str, ...], config: TrainConfig, *, crop: tuple[floa
 
 def _check_output_outside_data(output: Path, config: TrainConfig) -> None:
     """Refuse an output folder inside a folder of pairs: the run's folder would read as a broken pair next time."""
+    resolved = os.path.realpath(output)
     for key in ("folders", "validation_folders"):
         for root in getattr(config.data, key):
-            inside = os.path.realpath(output)
-            if os.path.commonpath([inside, os.path.realpath(root)]) == os.path.realpath(root):
+            folder = os.path.realpath(root)
+            if os.path.commonpath([resolved, folder]) == folder:
                 raise InputError(f"{output}: is inside data.{key} {root}, where the run's folder would read as a pair "
                                  "folder; choose an output folder outside the data")
 
