@@ -682,9 +682,14 @@ def read_transform(path: str | os.PathLike) -> sitk.Transform:
                          f"({', '.join(TRANSFORM_SUFFIXES)}) as SimpleITK, ITK or Slicer write it") from None
     if transform.GetDimension() != 3:
         raise InputError(f"{name}: is a {transform.GetDimension()}-D transform; expected a 3-D one")
-    if not np.isfinite(transform.GetParameters()).all() or not np.isfinite(transform.GetFixedParameters()).all():
+    if not _finite_parameters(transform):
         raise InputError(f"{name}: holds NaN or infinite parameters; compute and write the transform again")
     return transform.Downcast()
+
+
+def _finite_parameters(transform: sitk.Transform) -> bool:
+    """Whether every parameter and fixed parameter of ``transform`` is finite (what reading and writing require)."""
+    return bool(np.isfinite(transform.GetParameters()).all() and np.isfinite(transform.GetFixedParameters()).all())
 
 
 # ---------------------------------------------------------------------------------------------------------- writers
@@ -754,7 +759,7 @@ def write_transform(transform: sitk.Transform, path: str | os.PathLike) -> None:
     """
     target = Path(path)
     _check_write_suffix(target, TRANSFORM_SUFFIXES, "a transform")
-    if not (np.isfinite(transform.GetParameters()).all() and np.isfinite(transform.GetFixedParameters()).all()):
+    if not _finite_parameters(transform):
         raise InputError(f"{target}: the transform holds NaN or infinite parameters; nothing written")
     with atomic_output(target) as temporary:
         sitk.WriteTransform(transform, str(temporary))
