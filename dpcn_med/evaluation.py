@@ -3,6 +3,8 @@ error of an estimate against them (tests, benchmarks, the demo)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import SimpleITK as sitk
 from numpy.typing import ArrayLike
@@ -16,7 +18,20 @@ from dpcn_med.preprocess import foreground_mask
 def random_similarity(rng: np.random.Generator, centre: np.ndarray, *, max_shift_mm: float = 40.0,
                       scale_range: tuple[float, float] = (1.0, 1.0)) -> sitk.Similarity3DTransform:
     """A random ``fixed_to_moving`` similarity about ``centre`` (LPS, mm): rotation uniform over SO(3), shift of
-    uniform direction and length up to ``max_shift_mm``, scale uniform in ``scale_range``."""
+    uniform direction and length up to ``max_shift_mm``, scale uniform in ``scale_range``.
+
+    Raises:
+        ValueError: ``centre`` not 3 finite numbers, ``max_shift_mm`` negative or not finite, or ``scale_range`` not
+            ``0 < low <= high`` (finite).
+    """
+    centre = np.asarray(centre, dtype=np.float64)
+    low, high = scale_range
+    if centre.shape != (3,) or not np.isfinite(centre).all():
+        raise ValueError(f"centre must be 3 finite numbers (LPS, mm), got {centre.tolist()}")
+    if not (math.isfinite(max_shift_mm) and max_shift_mm >= 0):
+        raise ValueError(f"max_shift_mm must be finite and >= 0, got {max_shift_mm}")
+    if not (math.isfinite(high) and 0 < low <= high):
+        raise ValueError(f"scale_range must be (low, high) with 0 < low <= high, got {scale_range}")
     quaternion = rng.normal(size=4)
     quaternion /= np.linalg.norm(quaternion)
     if quaternion[3] < 0:  # (x, y, z, w) and its negative are the same rotation; a versor wants w >= 0

@@ -320,7 +320,9 @@ def physical_transform(rotation: Tensor, scale: float | None, translation: Tenso
     mu = 1.0 if scale is None else float(scale)
     centre = np.asarray(fixed_grid.centre, dtype=np.float64)
     matrix = np.eye(4)
-    matrix[:3, :3] = mu * rotation.detach().double().cpu().numpy()
+    # Project the solver's float32 rotation before the translation is computed from it: the ITK transform keeps the
+    # projected rotation, and c_f must still land on c_m + h tau (an unprojected R moved it by (R - R') c_f).
+    matrix[:3, :3] = mu * scale_and_rotation(rotation.detach().double().cpu().numpy(), "the solver's rotation")[1]
     matrix[:3, 3] = (np.asarray(moving_grid.centre) + fixed_grid.spacing * translation.detach().double().cpu().numpy()
                      - matrix[:3, :3] @ centre)
     return similarity_transform(matrix, centre, rigid=scale is None)

@@ -36,6 +36,19 @@ class TestRandomSimilarity:
         b = random_similarity(np.random.default_rng(5), np.zeros(3))
         assert a.GetParameters() == b.GetParameters()
 
+    @pytest.mark.parametrize("centre, options, message", [
+        (np.array([0.0, np.nan, 0.0]), {}, "centre must be 3 finite numbers"),
+        (np.zeros(2), {}, "centre must be 3 finite numbers"),
+        (np.zeros(3), {"max_shift_mm": -1.0}, "max_shift_mm must be finite"),
+        (np.zeros(3), {"max_shift_mm": np.inf}, "max_shift_mm must be finite"),
+        (np.zeros(3), {"scale_range": (-1.0, 1.0)}, "0 < low <= high"),
+        (np.zeros(3), {"scale_range": (1.2, 0.8)}, "0 < low <= high"),
+        (np.zeros(3), {"scale_range": (1.0, np.nan)}, "0 < low <= high"),
+    ])
+    def test_refuses_invalid_settings(self, centre, options, message):
+        with pytest.raises(ValueError, match=message):
+            random_similarity(np.random.default_rng(0), centre, **options)
+
 
 class TestMovedCopy:
     def test_moved_at_t_of_x_equals_image_at_x(self):

@@ -305,6 +305,19 @@ class TestPhysicalTransform:
                                    np.asarray(moving_grid.centre) + moving_grid.spacing * v, atol=1e-9)
         np.testing.assert_allclose(transform.GetFixedParameters(), fixed_grid.centre)
 
+    def test_the_grid_centre_lands_exactly_where_the_solver_says(self):
+        """A rotation off orthogonal by 1e-5 (within what ITK is given after projection), far from the origin: the
+        fixed centre still maps to c_m + h tau."""
+        fixed_grid = CanonicalGrid(64, 2.0, (3000.0, -2500.0, 4000.0))
+        moving_grid = CanonicalGrid(64, 2.0, (-10.0, 20.0, 30.0))
+        rotation = axis_angle_to_matrix(torch.tensor([0.3, 0.2, -0.9], dtype=torch.float64))
+        rotation = rotation + 1e-5 * torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -1.0]],
+                                                  dtype=torch.float64)
+        tau = torch.tensor([1.0, 2.0, -3.0], dtype=torch.float64)
+        transform = physical_transform(rotation, None, tau, fixed_grid, moving_grid)
+        np.testing.assert_allclose(transform.TransformPoint(fixed_grid.centre),
+                                   np.asarray(moving_grid.centre) + 2.0 * tau.numpy(), atol=1e-9)
+
     def test_rigid_gives_a_versor_transform(self):
         grid = CanonicalGrid(32, 1.0, (0.0, 0.0, 0.0))
         transform = physical_transform(torch.eye(3), None, torch.zeros(3), grid, grid)
