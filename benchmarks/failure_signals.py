@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--note", default="", help="a sentence for the description, e.g. how the combined rows ran")
     args = parser.parse_args(argv)
     if args.combine:
-        rows = [row for path in args.combine for row in read_csv(path, ROW_FIELDS)]
+        rows = [row for path in args.combine for _, row in read_csv(path, ROW_FIELDS)]
     else:
         rows = [row for case in args.cases for row in run(case, args.overlaps, args.trials, args.seed)]
         write_csv(rows, args.output.with_suffix(".csv"))

@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     missing = [] if args.combine else [m for m in args.methods if m not in installed]
     args.output.parent.mkdir(parents=True, exist_ok=True)
     if args.combine:
-        rows = [row for path in args.combine for row in read_csv(path, ROW_FIELDS)]
+        rows = [row for path in args.combine for _, row in read_csv(path, ROW_FIELDS)]
     else:
         solver = (SolverConfig(sphere_band=tuple(args.sphere_band), extra_sphere_bands=()) if args.sphere_band
                   else None)

@@ -503,9 +503,9 @@ def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
     for folder in folders:
         path = Path(folder) / "results.csv"
         found = io.read_csv(path, RESULT_FIELDS)
-        if found and set(found[0]) != set(RESULT_FIELDS):
+        if found and set(found[0][1]) != set(RESULT_FIELDS):
             raise InputError(f"{path}: not a benchmark's results (columns {', '.join(RESULT_FIELDS)}, no others)")
-        for line, row in enumerate(found, start=2):
+        for line, row in found:
             key = _checked_row(row, path, line)
             if key in seen:
                 raise InputError(f"{path}: line {line}: {', '.join(map(str, key))} is also in {seen[key]}")

@@ -8,6 +8,7 @@ for the unfinished pair; 1 internal error.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -33,6 +34,9 @@ from 20 of 21 starts (all correct; one at 0.002); 0.004-0.03 for correct built-i
 OUTPUT_NAMES = ("transform.tfm", "transform.h5", "inverse.tfm", "inverse.h5", "moving_resampled.nii.gz",
                 "overview.png", "report.json")
 """What ``register`` writes into its output folder; ``report.json`` comes last and marks a finished pair."""
+
+PAIR_COLUMNS = ("id", "fixed", "moving", "fixed_mask", "moving_mask")
+"""The columns of a register-batch pairs file; fixed and moving are required."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -75,16 +79,17 @@ def _parser() -> argparse.ArgumentParser:
     register.add_argument("fixed", help="fixed volume: NIfTI, NRRD, MHA/MHD, DICOM folder (FOLDER@SERIES_UID to pick "
                           "a series) or a surface mesh / point cloud (.stl .vtk .vtp .ply .obj)")
     register.add_argument("moving", help="moving volume, same kinds")
-    register.add_argument("-o", "--output", required=True, type=_output_path, help="output folder (created)")
+    register.add_argument("-o", "--output", required=True, type=output_path, help="output folder (created)")
     register.add_argument("--fixed-mask", help="binary mask on the fixed image's grid")
     register.add_argument("--moving-mask", help="binary mask on the moving image's grid")
 
     batch = commands.add_parser("register-batch", parents=[options], help="register every pair of a CSV file",
                                 description="Register every row of PAIRS.csv (columns fixed, moving and optionally "
                                 "id, fixed_mask, moving_mask; paths relative to the CSV) into OUTDIR/ID/. Pairs whose "
-                                "report.json exists are skipped, so an interrupted run resumes.")
+                                "report.json records the same inputs and settings are skipped, so an interrupted run "
+                                "resumes.")
     batch.add_argument("pairs", type=Path, help="CSV file with a header row")
-    batch.add_argument("-o", "--output", required=True, type=_output_path, help="output folder (created)")
+    batch.add_argument("-o", "--output", required=True, type=output_path, help="output folder (created)")
 
     training = commands.add_parser("train", parents=[tracebacks],
                                    help="train the feature networks (DPCN++) from a YAML config",
@@ -105,7 +110,7 @@ def _parser() -> argparse.ArgumentParser:
                                 "30-degree bins of initial rotation, and write results.csv, summary.md and "
                                 "success.png into OUTDIR. Quick mode (default): the built-in volumes, one pose per "
                                 "bin, a few minutes; --full: the shared real volumes too, ten poses per bin.")
-    bench.add_argument("-o", "--output", type=_output_path, default=Path("benchmark_output"),
+    bench.add_argument("-o", "--output", type=output_path, default=Path("benchmark_output"),
                        help="output folder; an interrupted run's registrations are kept there (results.partial.jsonl) "
                        "and the same command goes on from them")
     bench.add_argument("--full", action="store_true", help="the documented run (docs/benchmarks.md)")
@@ -168,27 +173,30 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _output_path(text: str) -> Path:
+def output_path(text: str) -> Path:
     if not text.strip():  # Path("") is the working folder: an empty variable in a script would write there
         raise argparse.ArgumentTypeError("an empty output folder; give a folder name ('.' for the working folder)")
     return Path(text)
 
 
-def _check_output_folder(output: Path) -> None:
+def check_output_folder(output: Path) -> None:
     """Refuse, before any work, an output folder that exists as a file or cannot be created or written."""
-    if output.exists() and not output.is_dir():
-        raise InputError(f"{output}: exists and is not a folder; choose another output folder")
-    for existing in (output, *output.absolute().parents):
-        if existing.exists():
-            break
-        if existing.is_symlink():  # mkdir would fail on it after the work
-            raise InputError(f"{output}: cannot be created: {existing} is a link to {os.readlink(existing)}, which "
-                             "does not exist; choose another output folder")
-    if not existing.is_dir():
-        raise InputError(f"{output}: cannot be created: {existing} is a file; choose another output folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise InputError(f"{output}: cannot be written: no write permission in {existing}; choose another output "
-                         "folder")
+    try:
+        if output.exists() and not output.is_dir():
+            raise InputError(f"{output}: exists and is not a folder; choose another output folder")
+        for existing in (output, *output.absolute().parents):
+            if existing.exists():
+                break
+            if existing.is_symlink():  # mkdir would fail on it after the work
+                raise InputError(f"{output}: cannot be created: {existing} is a link to {os.readlink(existing)}, which "
+                                 "does not exist; choose another output folder")
+        if not existing.is_dir():
+            raise InputError(f"{output}: cannot be created: {existing} is a file; choose another output folder")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise InputError(f"{output}: cannot be written: no write permission in {existing}; choose another output "
+                             "folder")
+    except OSError as error:  # a name too long for the file system, a loop of links
+        raise InputError(f"{output}: cannot be used ({error.strerror}); choose another output folder") from None
 
 
 def _make_folder(output: Path, *, staging: bool = False) -> Path:
@@ -230,10 +238,10 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
             if _same_file(source, output / name):
                 raise InputError(f"{output / name}: is an input of this run; choose another output folder (inputs "
                                  "are never overwritten)")
-    _check_output_folder(output)
+    check_output_folder(output)
 
     outputs = written_outputs(args)
-    started = time.perf_counter()
+    started, begun = time.perf_counter(), time.time()
     result = register(fixed, moving, mode=args.mode, model=args.model, bandwidth=args.bandwidth, refine=args.refine,
                       device=args.device, fixed_mask=fixed_mask, moving_mask=moving_mask,
                       fixed_modality=args.fixed_modality, moving_modality=args.moving_modality,
@@ -243,10 +251,15 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
     report = registration_report(result, fixed=fixed, moving=moving, fixed_mask=fixed_mask, moving_mask=moving_mask,
                                  min_confidence=args.min_confidence, outputs=list(outputs))
     report["timings_s"]["total"] = time.perf_counter() - started
+    report["request"] = _request(fixed, moving, fixed_mask, moving_mask, args)
 
     # Stage everything in a hidden folder inside the output folder (one file system, so the moves are renames), then
     # move it in: a failed or interrupted run leaves no partial result, nor the folders it created.
     created = [folder for folder in (output, *output.absolute().parents) if not folder.exists()]
+    for stale in output.glob(".dpcn-med-*"):  # staging left by a run killed outright (SIGKILL, a power cut)
+        with contextlib.suppress(OSError):
+            if stale.is_dir() and not stale.is_symlink() and stale.stat().st_mtime < begun:
+                shutil.rmtree(stale)
     staging, finished = None, False
     try:
         staging = _make_folder(output, staging=True)
@@ -317,95 +330,154 @@ def _path_cell(value: str | None) -> str:
     return value.strip()
 
 
-def _read_pairs(path: Path) -> list[dict[str, str]]:
+def _read_pairs(path: Path) -> list[dict[str, str | None]]:
+    """The pairs of a pairs file, paths resolved against its folder; a row without an id gets ``NNN-STEM`` (its
+    place among the rows and the moving file's name up to its first dot).
+
+    Raises:
+        InputError: naming the file and line: a missing path, an unknown column or an extra cell, a NUL character in
+            a path, or an id that is repeated (case aside) or is not a folder name (empty, '.', '..', 'summary.csv',
+            a slash, a control character, over 255 bytes).
+    """
     from dpcn_med import io
 
-    rows = io.read_csv(path, {"fixed": _path_cell, "moving": _path_cell})
+    rows = io.read_csv(path, {"fixed": _path_cell, "moving": _path_cell}, allowed=PAIR_COLUMNS)
     if not rows:
         raise InputError(f"{path}: no pairs (a header row with at least the columns fixed,moving, then a row a pair)")
-
-    def resolve(value: str) -> str | None:
-        return str(path.parent / value) if value else None
-
     pairs, seen = [], set()
-    for number, row in enumerate(rows, start=2):
-        pair_id = (row.get("id") or f"{number - 1:03d}-{Path(row['moving']).name.split('.')[0]}").strip()
-        if pair_id in seen or pair_id in ("", ".", "..", "summary.csv") or any(c in pair_id for c in "/\\\0"):
-            raise InputError(f"{path}: line {number}: id {pair_id!r} is repeated or not a folder name inside the "
-                             "output folder (empty, '.', '..', 'summary.csv', or a slash)")
-        seen.add(pair_id)
-        pairs.append({"id": pair_id, "fixed": resolve(row["fixed"]), "moving": resolve(row["moving"]),
-                      "fixed_mask": resolve((row.get("fixed_mask") or "").strip()),
-                      "moving_mask": resolve((row.get("moving_mask") or "").strip())})
+    for index, (line, row) in enumerate(rows, start=1):
+        pair_id = (row.get("id") or f"{index:03d}-{Path(row['moving']).name.split('.')[0]}").strip()
+        if (pair_id.casefold() in seen or pair_id in ("", ".", "..", "summary.csv") or any(c in pair_id for c in "/\\")
+                or any(ord(c) < 32 for c in pair_id) or len(pair_id.encode()) > 255):
+            raise InputError(f"{path}: line {line}: id {pair_id!r} is repeated (case aside) or not a folder name "
+                             "inside the output folder (empty, '.', '..', 'summary.csv', a slash, a control character, "
+                             "or over 255 bytes)")
+        seen.add(pair_id.casefold())  # Sub01 and sub01 would share one folder on macOS and Windows
+        cells = {key: (row.get(key) or "").strip() for key in ("fixed", "moving", "fixed_mask", "moving_mask")}
+        if any("\0" in value for value in cells.values()):
+            raise InputError(f"{path}: line {line}: a path holds a NUL character")
+        pairs.append({"id": pair_id, **{key: str(path.parent / value) if value else None
+                                        for key, value in cells.items()}})
     return pairs
 
 
-def _earlier_report(folder: Path) -> dict | None:
-    """The report.json a finished earlier run left in ``folder``; ``None`` if there is none, or none readable (the
-    pair is then registered again)."""
+def _request(fixed: str, moving: str, fixed_mask: str | None, moving_mask: str | None,
+             args: argparse.Namespace) -> dict:
+    """What a registration was asked for (report.json's ``request``): the inputs, resolved, and the options that
+    change its result. A batch rerun reuses an earlier result only if this matches."""
+    resolved = {key: None if value is None else os.path.realpath(value) for key, value in
+                (("fixed", fixed), ("moving", moving), ("fixed_mask", fixed_mask), ("moving_mask", moving_mask))}
+    return {**resolved, "mode": args.mode, "bandwidth": args.bandwidth, "model": args.model, "refine": args.refine,
+            "fixed_modality": args.fixed_modality, "moving_modality": args.moving_modality}
+
+
+def _earlier_report(folder: Path, request: dict, outputs: Sequence[str]) -> tuple[dict | None, bool]:
+    """The report.json a finished earlier run left in ``folder`` for this ``request`` and at least these
+    ``outputs``, and whether a report of other inputs or settings is there (the pair is then registered again, as
+    when there is none or none readable)."""
     from dpcn_med import io
 
+    if not (folder / "report.json").exists():
+        return None, False
     try:
         report = io.read_json(folder / "report.json")
         float(report["confidence"]), float(report["final"]["rotation_degrees"]), float(report["timings_s"]["total"])
     except (InputError, KeyError, TypeError, ValueError):
-        return None
-    return report
+        return None, False
+    if report.get("request") != request or not set(outputs) <= set(report.get("outputs", ())):
+        return None, True
+    return report, False
+
+
+def _check_outputs_are_not_inputs(pairs: list[dict], to_register: list[dict], output: Path) -> None:
+    """Refuse, before any work, a batch in which one pair's output would replace another's input (or the summary
+    an input): the second pair would read the first's result, or find its input deleted."""
+    inputs = {}
+    for pair in pairs:
+        for key in ("fixed", "moving", "fixed_mask", "moving_mask"):
+            with contextlib.suppress(OSError):
+                if pair[key] is not None:
+                    found = os.stat(pair[key])
+                    inputs.setdefault((found.st_dev, found.st_ino), f"the {key.replace('_', ' ')} of pair "
+                                      f"{pair['id']!r}")
+    targets = [output / "summary.csv", *(output / pair["id"] / name for pair in to_register for name in OUTPUT_NAMES)]
+    for target in targets:
+        with contextlib.suppress(OSError):
+            found = os.stat(os.path.realpath(target))  # realpath: out/x/../in.nii.gz names out/in.nii.gz once x exists
+            if (found.st_dev, found.st_ino) in inputs:
+                raise InputError(f"{target}: is {inputs[found.st_dev, found.st_ino]}, which this run would replace; "
+                                 "choose another output folder (inputs are never overwritten)")
 
 
 def _register_batch(args: argparse.Namespace) -> int:
     from dpcn_med import io
+    from dpcn_med.register import check_options
 
     pairs = _read_pairs(args.pairs)
-    if _same_file(args.pairs, args.output / "summary.csv"):
-        raise InputError(f"{args.output / 'summary.csv'}: is this run's pairs file; choose another output folder "
-                         "(inputs are never overwritten)")
-    _check_output_folder(args.output)
+    summary = args.output / "summary.csv"
+    if _same_file(args.pairs, summary):
+        raise InputError(f"{summary}: is this run's pairs file; choose another output folder (inputs are never "
+                         "overwritten)")
+    if os.path.lexists(summary) and not summary.is_file():
+        raise InputError(f"{summary}: exists and is not a file; choose another output folder")
+    check_output_folder(args.output)
+    check_options(mode=args.mode, model=args.model, bandwidth=args.bandwidth, device=args.device,
+                  fixed_modality=args.fixed_modality, moving_modality=args.moving_modality)
+    outputs = written_outputs(args)
+    earlier = [_earlier_report(args.output / pair["id"], _request(pair["fixed"], pair["moving"], pair["fixed_mask"],
+                                                                  pair["moving_mask"], args), outputs)
+               for pair in pairs]
+    _check_outputs_are_not_inputs(pairs, [pair for pair, (report, _) in zip(pairs, earlier) if report is None],
+                                  args.output)
     rows, codes = [], []
-    for index, pair in enumerate(pairs, start=1):
-        folder = args.output / pair["id"]
+    for index, (pair, (report, replaced)) in enumerate(zip(pairs, earlier), start=1):
         label = f"[{index}/{len(pairs)}] {pair['id']} "
-        earlier = _earlier_report(folder)
-        if earlier is not None:
-            low = earlier["confidence"] < args.min_confidence
+        if report is not None:
+            low = report["confidence"] < args.min_confidence
             rows.append({"id": pair["id"], "status": "done earlier" + (", low confidence" if low else ""),
-                         "confidence": f"{earlier['confidence']:.4f}",
-                         "rotation_deg": f"{earlier['final']['rotation_degrees']:.1f}",
-                         "seconds": f"{earlier['timings_s']['total']:.1f}", "message": ""})
-            codes.append(EXIT_LOW_CONFIDENCE if low else EXIT_OK)
-            continue
-        try:
-            code, report = register_pair(pair["fixed"], pair["moving"], folder, args, fixed_mask=pair["fixed_mask"],
-                                         moving_mask=pair["moving_mask"], label=label)
-            rows.append({"id": pair["id"], "status": "ok" if code == EXIT_OK else "low confidence",
                          "confidence": f"{report['confidence']:.4f}",
                          "rotation_deg": f"{report['final']['rotation_degrees']:.1f}",
                          "seconds": f"{report['timings_s']['total']:.1f}", "message": ""})
-        except InputError as error:
-            code = EXIT_INPUT
-            rows.append({"id": pair["id"], "status": "bad input", "confidence": "", "rotation_deg": "", "seconds": "",
-                         "message": str(error)})
-        except Exception as error:  # one broken pair must not stop a cohort; it is reported and counted
-            code = EXIT_INTERNAL
-            rows.append({"id": pair["id"], "status": "internal error", "confidence": "", "rotation_deg": "",
-                         "seconds": "", "message": f"{type(error).__name__}: {error}"})
-            if args.verbose:
-                traceback.print_exc()
-        codes.append(code)
-        line = f"{label}{rows[-1]['status']} {rows[-1]['message']}".rstrip()
-        if code in (EXIT_INPUT, EXIT_INTERNAL):  # errors, on stderr, -q or not
-            print(line, file=sys.stderr)
-        elif not args.quiet:
-            print(line)
-    _make_folder(args.output)
-    io.write_csv(rows, args.output / "summary.csv")
+            codes.append(EXIT_LOW_CONFIDENCE if low else EXIT_OK)
+        else:
+            codes.append(_register_row(pair, args, label, rows, replaced))
+        _make_folder(args.output)  # after every pair: an interrupted run's summary lists what it finished
+        io.write_csv(rows, summary)
     if not args.quiet:
         print(_table(rows))
-        print(f"summary in {args.output / 'summary.csv'}")
+        print(f"summary in {summary}")
     for code in (EXIT_INTERNAL, EXIT_INPUT, EXIT_LOW_CONFIDENCE):
         if code in codes:
             return code
     return EXIT_OK
+
+
+def _register_row(pair: dict, args: argparse.Namespace, label: str, rows: list[dict], replaced: bool) -> int:
+    """Register one pair of a batch, append its summary row to ``rows``, print its line; returns its exit code."""
+    note = "replaced an earlier result of other inputs or settings" if replaced else ""
+    try:
+        code, report = register_pair(pair["fixed"], pair["moving"], args.output / pair["id"], args,
+                                     fixed_mask=pair["fixed_mask"], moving_mask=pair["moving_mask"], label=label)
+        rows.append({"id": pair["id"], "status": "ok" if code == EXIT_OK else "low confidence",
+                     "confidence": f"{report['confidence']:.4f}",
+                     "rotation_deg": f"{report['final']['rotation_degrees']:.1f}",
+                     "seconds": f"{report['timings_s']['total']:.1f}", "message": note})
+    except InputError as error:
+        code = EXIT_INPUT
+        rows.append({"id": pair["id"], "status": "bad input", "confidence": "", "rotation_deg": "", "seconds": "",
+                     "message": str(error)})
+    except Exception as error:  # one broken pair must not stop a cohort; it is reported and counted
+        code = EXIT_INTERNAL
+        rows.append({"id": pair["id"], "status": "internal error", "confidence": "", "rotation_deg": "",
+                     "seconds": "", "message": f"{type(error).__name__}: {error}"})
+        if args.verbose:
+            traceback.print_exc()
+    line = f"{label}{rows[-1]['status']} {rows[-1]['message']}".rstrip()
+    if code in (EXIT_INPUT, EXIT_INTERNAL):  # errors, on stderr, -q or not
+        print(line, file=sys.stderr)
+    elif not args.quiet:
+        print(line)
+    return code
 
 
 def _table(rows: list[dict[str, str]]) -> str:
@@ -426,7 +498,7 @@ def _train(args: argparse.Namespace) -> int:
     config = replace(config, **{k: v for k, v in changes.items() if v is not None})
     if args.steps is not None:
         config = replace(config, optimiser=replace(config.optimiser, steps=args.steps))
-    _check_output_folder(Path(config.output))
+    check_output_folder(Path(config.output))
     _, record = train(config)
     if record:  # rank 0 only
         after = record["validation_after"] or {}
@@ -446,7 +518,7 @@ def _benchmark(args: argparse.Namespace) -> int:
                "run_bins": tuple(args.bins) if args.bins else None}
     config = replace(config, **{k: v for k, v in changes.items() if v is not None})
     showcase: dict = {}
-    _check_output_folder(args.output)
+    check_output_folder(args.output)
     if args.combine:
         ignored = [flag for flag, value in (("--cases", args.cases), ("--methods", args.methods),
                                             ("--trials", args.trials), ("--seed", args.seed), ("--bins", args.bins))

@@ -22,7 +22,7 @@ import os
 import re
 import secrets
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -859,30 +859,47 @@ def write_csv(rows: list[dict], path: str | os.PathLike, columns: list[str] | No
     write_text(buffer.getvalue(), path)
 
 
-def read_csv(path: str | os.PathLike, columns: dict[str, Callable[[str], Any]]) -> list[dict]:
-    """The rows of a CSV table with a header (as :func:`write_csv` writes it), each value of ``columns`` converted
-    by its type (``{"trial": int, "tre_mm": float}``); other columns stay strings.
+def read_csv(path: str | os.PathLike, columns: dict[str, Callable[[str], Any]], *,
+             allowed: Collection[str] | None = None) -> list[tuple[int, dict]]:
+    """The rows of a CSV table with a header (as :func:`write_csv` writes it), each with the line it ends on, each
+    value of ``columns`` converted by its type (``{"trial": int, "tre_mm": float}``); other columns stay strings, and
+    a short row's missing cells are ``None``. Blank lines are skipped, before the header too.
+
+    Args:
+        allowed: the only columns the table may have (with ``columns``); ``None``: any.
 
     Raises:
         InputNotFoundError: the file is missing.
-        InputError: not CSV, a column of ``columns`` is missing, or a value does not convert (the message names the
-            line).
+        InputError: not CSV, a column of ``columns`` is missing, a column is named twice or is not ``allowed``, a
+            row has more cells than the header (an unquoted comma), or a value does not convert (the message names
+            the line).
     """
     name = os.fspath(path)
     try:
         # utf-8-sig: spreadsheets save "CSV UTF-8" with a byte-order mark
-        reader = csv.DictReader(io.StringIO(read_text(name, encoding="utf-8-sig"), newline=""))
-        reader.fieldnames = [field.strip() for field in reader.fieldnames or ()]
-        table = list(reader)
+        reader = csv.reader(io.StringIO(read_text(name, encoding="utf-8-sig"), newline=""))
+        lines = [(reader.line_num, cells) for cells in reader if any(cell.strip() for cell in cells)]
     except csv.Error as error:
         raise InputError(f"{name}: not a readable CSV file ({error})") from None
-    missing = [column for column in columns if column not in (reader.fieldnames or ())]
+    header = [field.strip() for field in lines[0][1]] if lines else []
+    repeated = sorted({field for field in header if header.count(field) > 1})
+    if repeated:
+        raise InputError(f"{name}: column {', '.join(map(repr, repeated))} appears more than once in the header")
+    missing = [column for column in columns if column not in header]
     if missing:
         raise InputError(f"{name}: no column {', '.join(missing)} (expected {', '.join(columns)})")
+    unknown = [field for field in header if allowed is not None and field not in {*columns, *allowed}]
+    if unknown:
+        raise InputError(f"{name}: unknown column {', '.join(map(repr, unknown))} (the columns are "
+                         f"{', '.join(dict.fromkeys([*columns, *allowed]))})")
     rows = []
-    for line, row in enumerate(table, start=2):
+    for line, cells in lines[1:]:
+        if len(cells) > len(header):
+            raise InputError(f"{name}: line {line}: {len(cells)} cells under {len(header)} columns (a comma in a "
+                             "value needs the value in double quotes)")
+        row = dict(zip(header, [*cells, *[None] * (len(header) - len(cells))]))
         try:
-            rows.append({**row, **{column: kind(row[column]) for column, kind in columns.items()}})
+            rows.append((line, {**row, **{column: kind(row[column]) for column, kind in columns.items()}}))
         except (TypeError, ValueError) as error:
             raise InputError(f"{name}: line {line}: {error}") from None
     return rows

@@ -199,6 +199,27 @@ class RegistrationResult:
         }
 
 
+def check_options(*, mode: str, model: str | os.PathLike | None, bandwidth: int, device: str | torch.device,
+                  fixed_modality: str, moving_modality: str
+                  ) -> tuple[str, int, torch.device, DPCN | None]:
+    """:func:`register`'s options checked before any work (a batch checks them once, not at every pair).
+
+    Returns:
+        ``(mode, bandwidth, device, network)``: the device resolved, the model loaded (``None``: learning-free).
+
+    Raises:
+        InputError: an unknown mode, modality or device, a bandwidth out of range (the grids will be ``(2B)^3``), or
+            a model that cannot be used at this bandwidth.
+    """
+    mode = check_mode(mode)
+    bandwidth = check_bandwidth(check_integer("bandwidth", bandwidth), 2 * MAX_BANDWIDTH)
+    for name, value in (("fixed_modality", fixed_modality), ("moving_modality", moving_modality)):
+        if value not in MODALITIES:
+            raise InputError(f"{name} {value!r} is not supported; use one of {', '.join(MODALITIES)}")
+    torch_device = resolve_device(device)
+    return mode, bandwidth, torch_device, load_feature_model(model, bandwidth, torch_device)
+
+
 def describe_transform(fixed_to_moving: sitk.Transform) -> dict:
     """A transform as JSON: ITK name, parameters, centre, the 4x4 LPS matrix, rotation angle and scale."""
     matrix = homogeneous_matrix(fixed_to_moving)
@@ -388,14 +409,9 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         raise InputError(f"progress is {shown(progress)}; expected a function progress(stage, fraction) or None")
     report = progress or (lambda stage, fraction: None)
     refinement = refinement or Refinement()
-    mode = check_mode(mode)
-    # before any work: the grids will be (2B)^3
-    bandwidth = check_bandwidth(check_integer("bandwidth", bandwidth), 2 * MAX_BANDWIDTH)
-    for name, value in (("fixed_modality", fixed_modality), ("moving_modality", moving_modality)):
-        if value not in MODALITIES:
-            raise InputError(f"{name} {value!r} is not supported; use one of {', '.join(MODALITIES)}")
-    torch_device = resolve_device(device)
-    network = load_feature_model(model, bandwidth, torch_device)
+    mode, bandwidth, torch_device, network = check_options(mode=mode, model=model, bandwidth=bandwidth, device=device,
+                                                           fixed_modality=fixed_modality,
+                                                           moving_modality=moving_modality)
     if network is not None and solver is not None:
         raise InputError(f"{model}: a learned model carries its own solver settings; pass solver= only without one")
     # A learned model saw grids made one way in training; it gets the same unless the caller says otherwise.

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import re
+import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -409,9 +412,92 @@ class TestBatch:
         rows = list(csv.DictReader((output / "summary.csv").open()))
         assert rows[0] == {**first, "status": "done earlier"}  # the earlier run's numbers, read from its report
         (tmp_path / "good.csv").write_text(f"id,fixed,moving\ngood,{pair[0]},{pair[1]}\n")
-        assert main(["register-batch", str(tmp_path / "good.csv"), "-o", str(output), "--min-confidence", "2"]) == 3
+        assert main(["register-batch", str(tmp_path / "good.csv"), "-o", str(output), "--no-refine",
+                     "--min-confidence", "2"]) == 3
         rows = list(csv.DictReader((output / "summary.csv").open()))
         assert rows[0]["status"] == "done earlier, low confidence"
+
+    def test_an_earlier_result_of_other_inputs_or_settings_is_not_reused(self, pair, tmp_path, capsys):
+        """Default ids follow the rows' order, so a shortened file gives pair 2 the id pair 1 had; an edited row or
+        another mode keeps its id. Each is registered again, and says so."""
+        flipped = tmp_path / "s2" / "moving.nrrd"
+        flipped.parent.mkdir()
+        sitk.WriteImage(sitk.Flip(sitk.ReadImage(str(pair[1])), (True, False, False)), str(flipped))
+        table, output = tmp_path / "pairs.csv", tmp_path / "cohort"
+        table.write_text(f"fixed,moving\n{pair[0]},{pair[1]}\n{pair[0]},{flipped}\n")
+        assert main(["register-batch", str(table), "-o", str(output), "--no-refine", "--no-overview"]) in (0, 3)
+        assert sorted(p.name for p in output.iterdir()) == ["001-moving", "002-moving", "summary.csv"]
+        capsys.readouterr()
+        table.write_text(f"fixed,moving\n{pair[0]},{flipped}\n")  # 001-moving now names the second pair
+        for mode in ("rigid", "similarity", "similarity"):
+            main(["register-batch", str(table), "-o", str(output), "--no-refine", "--no-overview", "--mode", mode])
+            report = json.loads((output / "001-moving" / "report.json").read_text())
+            assert report["request"]["moving"] == str(flipped.resolve()) and report["mode"] == mode
+        out = capsys.readouterr().out
+        assert out.count("replaced an earlier result of other inputs or settings") == 2
+        assert out.count("done earlier") == 1
+
+    def test_one_pairs_output_never_replaces_another_pairs_input(self, pair, tmp_path, capsys):
+        """Pair b reads a file where pair a would write its resampled volume: before, b registered a's output (or,
+        with --no-resampled, found its input deleted)."""
+        (tmp_path / "cohort" / "a").mkdir(parents=True)
+        shutil.copy(pair[1], tmp_path / "cohort" / "a" / "moving_resampled.nii.gz")
+        before = (tmp_path / "cohort" / "a" / "moving_resampled.nii.gz").read_bytes()
+        table = tmp_path / "pairs.csv"
+        table.write_text(f"id,fixed,moving\na,{pair[0]},{pair[1]}\nb,{pair[0]},cohort/a/moving_resampled.nii.gz\n")
+        for options in ([], ["--no-resampled"]):
+            assert main(["register-batch", str(table), "-o", str(tmp_path / "cohort"), *options]) == 2
+            assert re.search(r"cohort/a/moving_resampled\.nii\.gz: is the moving of pair 'b', which this run would "
+                             r"replace", capsys.readouterr().err)
+        assert (tmp_path / "cohort" / "a" / "moving_resampled.nii.gz").read_bytes() == before
+        assert sorted(p.name for p in (tmp_path / "cohort").rglob("*")) == ["a", "moving_resampled.nii.gz"]
+
+    @pytest.mark.parametrize("options, message", [
+        (["--bandwidth", "-5"], "bandwidth -5 is out of range"),
+        (["--model", "nosuch"], "nosuch"),
+        (["--device", "tpu"], "tpu"),
+    ])
+    def test_options_are_checked_once_before_any_pair(self, options, message, pair, tmp_path, capsys):
+        table = tmp_path / "pairs.csv"
+        table.write_text(f"id,fixed,moving\na,{pair[0]},{pair[1]}\nb,{pair[0]},{pair[1]}\n")
+        assert main(["register-batch", str(table), "-o", str(tmp_path / "o"), *options]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("dpcn-med: error: ") and err.count("\n") == 1 and message in err, err
+        assert not (tmp_path / "o").exists()
+
+    def test_a_summary_that_is_a_folder_is_refused_before_the_work(self, pair, tmp_path, capsys):
+        (tmp_path / "o" / "summary.csv").mkdir(parents=True)
+        table = tmp_path / "pairs.csv"
+        table.write_text(f"id,fixed,moving\na,{pair[0]},{pair[1]}\n")
+        assert main(["register-batch", str(table), "-o", str(tmp_path / "o")]) == 2
+        assert "summary.csv: exists and is not a file" in capsys.readouterr().err
+        assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["summary.csv"]
+
+    def test_the_summary_lists_what_an_interrupted_run_finished(self, pair, tmp_path, capsys, monkeypatch):
+        import dpcn_med.cli
+
+        table = tmp_path / "pairs.csv"
+        table.write_text(f"id,fixed,moving\na,{pair[0]},{pair[1]}\nb,{pair[0]},{pair[1]}\n")
+        register_pair = dpcn_med.cli.register_pair
+
+        def interrupted_at_b(fixed, moving, output, *args, **kwargs):
+            if output.name == "b":
+                raise KeyboardInterrupt
+            return register_pair(fixed, moving, output, *args, **kwargs)
+
+        monkeypatch.setattr(dpcn_med.cli, "register_pair", interrupted_at_b)
+        assert main(["register-batch", str(table), "-o", str(tmp_path / "o"), "--no-refine", "--no-overview"]) == 130
+        assert [row["id"] for row in csv.DictReader((tmp_path / "o" / "summary.csv").open())] == ["a"]
+
+    def test_staging_left_by_a_killed_run_is_removed(self, pair, tmp_path):
+        stale = tmp_path / "o" / "a" / ".dpcn-med-killed"
+        stale.mkdir(parents=True)
+        (stale / "transform.tfm").write_text("half")
+        os.utime(stale, (time.time() - 1, time.time() - 1))  # before this registration began
+        table = tmp_path / "pairs.csv"
+        table.write_text(f"id,fixed,moving\na,{pair[0]},{pair[1]}\n")
+        main(["register-batch", str(table), "-o", str(tmp_path / "o"), "--no-refine", "--no-overview"])
+        assert (tmp_path / "o" / "a" / "report.json").is_file() and not stale.exists()
 
     def test_errors_go_to_stderr_even_when_quiet(self, pair, tmp_path, capsys):
         table = tmp_path / "pairs.csv"
@@ -435,10 +521,19 @@ class TestBatch:
         ("fixed,moving\n", r"pairs\.csv: no pairs"),
         ("id,fixed,moving\nfirst,a.nii\n", r"pairs\.csv: line 2: a fixed or moving path is missing"),
         ("fixed,moving\na.nii,b.nii\n , c.nii\n", r"pairs\.csv: line 3: a fixed or moving path is missing"),
-        ("id,fixed,moving\nx,a.nii,b.nii\nx,c.nii,d.nii\n", r"pairs\.csv: line 3: id 'x' is repeated or not a folder"),
+        ("id,fixed,moving\nx,a.nii,b.nii\nx,c.nii,d.nii\n", r"pairs\.csv: line 3: id 'x' is repeated"),
+        ("id,fixed,moving\nSub01,a.nii,b.nii\nsub01,c.nii,d.nii\n", r"line 3: id 'sub01' is repeated \(case aside\)"),
         # a spreadsheet's byte-order mark and spaces in the header are read through
-        ("\ufeffid, fixed, moving\n..,a.nii,b.nii\n", r"pairs\.csv: line 2: id '\.\.' is repeated or not a folder"),
-        ("id,fixed,moving\nsummary.csv,a.nii,b.nii\n", r"line 2: id 'summary\.csv' is repeated or not a folder"),
+        ("\ufeffid, fixed, moving\n..,a.nii,b.nii\n", r"pairs\.csv: line 2: id '\.\.' is repeated"),
+        ("id,fixed,moving\nsummary.csv,a.nii,b.nii\n", r"line 2: id 'summary\.csv' is repeated"),
+        ('id,fixed,moving\n"a\nb",a.nii,b.nii\n', r"line 3: id 'a\\nb' is repeated"),
+        (f"id,fixed,moving\n{'x' * 256},a.nii,b.nii\n", r"line 2: id 'x{256}' is repeated"),
+        ("\n\nfixed,moving\n\na.nii,b.nii\n,c.nii\n", r"pairs\.csv: line 6: a fixed or moving path is missing"),
+        ("id,fixed,moving\nx,a\0.nii,b.nii\n", r"pairs\.csv: line 2: a path holds a NUL character"),
+        ("id,fixed,moving,moving\nx,a.nii,b.nii,c.nii\n", r"pairs\.csv: column 'moving' appears more than once"),
+        ("id,fixed,moving,fixed-mask\nx,a.nii,b.nii,c.nii\n", r"pairs\.csv: unknown column 'fixed-mask' \(the "
+         r"columns are fixed, moving, id, fixed_mask, moving_mask\)"),
+        ("fixed,moving\na.nii,b.nii,m.nii\n", r"pairs\.csv: line 2: 3 cells under 2 columns"),
         (None, r"pairs\.csv: not found"),
         ("", r"pairs\.csv: is a folder"),
     ])

@@ -544,7 +544,30 @@ class TestReadCsv:
     def test_spreadsheet_byte_order_mark_and_spaced_header(self, tmp_path):
         path = tmp_path / "t.csv"
         path.write_bytes("\ufeffid, fixed ,moving\nx,a.nii,b.nii\n".encode())
-        assert io.read_csv(path, {"fixed": str, "moving": str}) == [{"id": "x", "fixed": "a.nii", "moving": "b.nii"}]
+        assert io.read_csv(path, {"fixed": str, "moving": str}) == [(2, {"id": "x", "fixed": "a.nii",
+                                                                          "moving": "b.nii"})]
+
+    def test_blank_lines_are_skipped_and_rows_carry_their_own_line(self, tmp_path):
+        path = tmp_path / "t.csv"
+        path.write_text('\n\nid,fixed\n\n \n"a\nb",x.nii\n,,\nc,y.nii\n')
+        assert io.read_csv(path, {"fixed": str}) == [(7, {"id": "a\nb", "fixed": "x.nii"}),
+                                                      (9, {"id": "c", "fixed": "y.nii"})]
+
+    def test_a_short_row_has_none_for_its_missing_cells(self, tmp_path):
+        (tmp_path / "t.csv").write_text("id,fixed,mask\na,x.nii\n")
+        assert io.read_csv(tmp_path / "t.csv", {"fixed": str}) == [(2, {"id": "a", "fixed": "x.nii", "mask": None})]
+
+    @pytest.mark.parametrize("text, message", [
+        ("id,fixed,fixed\na,x,y\n", r"t\.csv: column 'fixed' appears more than once in the header"),
+        ("fixed\nx.nii,y.nii\n", r"t\.csv: line 2: 2 cells under 1 columns \(a comma in a value needs the value in "
+                                  r"double quotes\)"),
+        ("id,fixed,fixed-mask\na,x,y\n", r"t\.csv: unknown column 'fixed-mask' \(the columns are fixed, id, "
+                                         r"fixed_mask\)"),
+    ])
+    def test_refuses_a_header_or_row_that_would_lose_a_value(self, tmp_path, text, message):
+        (tmp_path / "t.csv").write_text(text)
+        with pytest.raises(InputError, match=message):
+            io.read_csv(tmp_path / "t.csv", {"fixed": str}, allowed=("id", "fixed_mask"))
 
     def test_folder(self, tmp_path):
         with pytest.raises(InputError, match=r": is a folder; expected a file"):
@@ -998,8 +1021,8 @@ class TestCsv:
     def test_read_back_with_the_types_given(self, tmp_path):
         rows = [{"id": "a", "trial": 0, "tre_mm": 0.5}, {"id": "b", "trial": 1, "tre_mm": 2.25}]
         io.write_csv(rows, tmp_path / "rows.csv")
-        assert io.read_csv(tmp_path / "rows.csv", {"trial": int, "tre_mm": float}) == rows
-        assert io.read_csv(tmp_path / "rows.csv", {"tre_mm": float})[1]["trial"] == "1"  # other columns: strings
+        assert io.read_csv(tmp_path / "rows.csv", {"trial": int, "tre_mm": float}) == list(zip([2, 3], rows))
+        assert io.read_csv(tmp_path / "rows.csv", {"tre_mm": float})[1][1]["trial"] == "1"  # other columns: strings
         with pytest.raises(InputError, match=r"rows\.csv: no column seconds, method \(expected trial, seconds, "):
             io.read_csv(tmp_path / "rows.csv", {"trial": int, "seconds": float, "method": str})
         (tmp_path / "bad.csv").write_text("id,trial\na,0\nb,one\n")
