@@ -113,7 +113,9 @@ def mni152_head_t1(seed: int = 0) -> sitk.Image:
     head, bone = sitk.GetArrayFromImage(masks["head"]) > 0, sitk.GetArrayFromImage(masks["bone"]) > 0
     intracranial = (brain > 0) | (sitk.GetArrayFromImage(masks["brain"]) > 0)
     white = float(np.percentile(brain[brain > 0], 99))
-    outside_bone = sitk.GetArrayFromImage(_distance_outside(masks["bone"] | masks["brain"])) > 0
+    # Outside the skull by the hull's distance, as the bone was placed: the distance to bone or brain is positive in
+    # the CSF between them too, which would paint it scalp-bright.
+    outside_bone = sitk.GetArrayFromImage(_hull_distance(masks["brain"])) > _BONE_FROM_HULL_MM[1]
     layers = np.zeros_like(brain)
     layers[head & ~intracranial] = _T1_RATIOS["csf"] * white
     layers[bone] = _T1_RATIOS["bone"] * white

@@ -98,3 +98,8 @@ class TestMni152HeadT1:
         np.testing.assert_array_equal(array[brain], sitk.GetArrayFromImage(t1)[brain])
         assert np.median(array[bone]) < 0.2 * np.median(array[brain]) < np.median(array[scalp])
         assert array[~inside].max() == 0.0
+        # between brain and skull, CSF is dark (it was painted scalp-bright before)
+        near_brain = sitk.GetArrayFromImage(sitk.SignedMaurerDistanceMap(  # in voxels: 1 mm
+            sitk.GetImageFromArray(masks["brain"]), insideIsPositive=False, squaredDistance=False))
+        csf = inside & ~bone & ~brain & (sitk.GetArrayFromImage(t1) == 0) & (near_brain > 0) & (near_brain <= 2.0)
+        assert csf.sum() > 10_000 and np.median(array[csf]) < 0.25 * np.median(array[brain]), np.median(array[csf])
