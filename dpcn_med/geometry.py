@@ -274,19 +274,20 @@ def warp(volume: Tensor, matrix: Tensor, translation: Tensor | None = None) -> T
     Args:
         volume: ``(B, C, D, H, W)`` (or ``(B, C, H, W)`` for 2-D).
         matrix: ``(B, *K, d, d)`` ``moving_from_fixed`` linear part, acting on ``(x, y[, z])``; ``K`` optional
-            extra axes (one resampled volume per entry, e.g. per candidate).
+            extra axes (one resampled volume per entry, e.g. per candidate). Moved to ``volume``'s device and dtype,
+            as is ``translation``.
         translation: ``(B, *K, d)`` voxels, or ``None`` for zero.
 
     Returns:
-        ``(B, C, *K, *S)``, ``S`` the spatial shape of ``volume``; trilinear (bilinear) interpolation, zero outside
-        the input grid.
+        ``(B, C, *K, *S)`` on ``volume``'s device and dtype, ``S`` its spatial shape; trilinear (bilinear)
+        interpolation, zero outside the input grid.
 
     Convention:
         Pull resampling about the grid centre, as in the module docstring.
     """
     sizes = tuple(volume.shape[2:])
-    matrix = matrix.to(volume.dtype)
-    translation = matrix.new_zeros(matrix.shape[:-1]) if translation is None else translation.to(volume.dtype)
+    matrix = matrix.to(volume)
+    translation = matrix.new_zeros(matrix.shape[:-1]) if translation is None else translation.to(volume)
     # Fold grid_sample's normalisation into the map (per axis, with Python scalars): the grid comes out normalised in
     # one pass instead of three over every voxel.
     scale = [2.0 / (n - 1) for n in sizes[::-1]]

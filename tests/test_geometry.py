@@ -163,6 +163,14 @@ class TestWarp:
         y, x = torch.unravel_index(moved.flatten().argmax(), (12, 12))
         assert (int(x) - 6, int(y) - 6) == (2, 3)
 
+    def test_follows_the_volume_device_and_dtype(self):
+        # The grid is built on the volume's device: host matrices with a volume elsewhere (CUDA; 'meta' here, which
+        # needs no accelerator) failed in grid_sample ("expected input and grid to be on same device").
+        matrix = torch.eye(3, dtype=torch.float32)[None]
+        translation = torch.tensor([[1.0, 0.0, 0.0]])
+        moved = warp(torch.zeros(1, 1, 8, 8, 8, dtype=torch.float64, device="meta"), matrix, translation)
+        assert moved.device.type == "meta" and moved.dtype == torch.float64 and moved.shape == (1, 1, 8, 8, 8)
+
     def test_threaded_chunks_give_the_same_samples(self):
         volume = torch.randn(1, 1, 16, 16, 16, generator=torch.Generator().manual_seed(7))
         matrix = random_rotation(1, torch.Generator().manual_seed(8)).float()

@@ -11,7 +11,7 @@ import torch
 
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import grid_centre, rotation_angle, rotation_z, warp
-from dpcn_med.synth import Pose, pseudo_ct, random_poses
+from dpcn_med.synth import CTTissues, Pose, pseudo_ct, random_poses
 from tests.conftest import shared_path
 
 
@@ -26,6 +26,22 @@ class TestPose:
         moving = pose.moving_from(fixed)
         back = warp(moving, pose.rotation[None], pose.translation[None])
         torch.testing.assert_close(back, fixed, atol=1e-9, rtol=0)
+
+    def test_moving_from_follows_the_volume_dtype(self):
+        pose = random_poses(1, 16, seed=1)[0]
+        single = Pose(pose.rotation.float(), pose.scale, pose.translation.float())
+        fixed = torch.rand(1, 1, 16, 16, 16, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+        moving = single.moving_from(fixed)
+        assert moving.dtype == torch.float64
+        # The float32 pose, widened, is the pose used.
+        widened = Pose(single.rotation.double(), single.scale, single.translation.double())
+        torch.testing.assert_close(moving, widened.moving_from(fixed), rtol=0, atol=0)
+
+    def test_moving_from_follows_the_volume_device(self):
+        # Host poses with a volume elsewhere (CUDA in benchmarks/solver_speed.py; 'meta' here) failed in grid_sample.
+        fixed = torch.zeros(2, 1, 16, 16, 16, dtype=torch.float64, device="meta")
+        moving = random_poses(1, 16, seed=1)[0].moving_from(fixed)
+        assert moving.device.type == "meta" and moving.dtype == torch.float64 and moving.shape == fixed.shape
 
     def test_errors_of_an_exact_and_of_a_wrong_estimate(self):
         pose = random_poses(1, 64, seed=0)[0]
@@ -51,6 +67,22 @@ class TestRandomPoses:
         poses = random_poses(5, 256, seed=4, dim=2, similarity=False, max_shift=50.0)
         assert all(p.rotation.shape == (2, 2) and p.scale == 1.0 for p in poses)
         assert all(p.translation.norm() <= 50.0 for p in poses)
+
+    @pytest.mark.parametrize("options,message", [
+        ({"count": -3}, "^count is -3; expected an integer >= 0$"),
+        ({"size": 0}, "^size is 0; expected an integer >= 1$"),
+        ({"dim": 4}, "^dim is 4; expected an integer >= 2 and <= 3$"),
+        ({"similarity": "yes"}, r"^similarity is 'yes' \(str\); expected True or False$"),
+        ({"max_shift": math.nan}, "^max_shift is nan; expected a finite number >= 0$"),
+        ({"max_shift": -1.0}, "^max_shift is -1.0; expected a finite number >= 0$"),
+        ({"scale_range": (-1.0, -0.5)}, r"^scale_range is \(-1.0, -0.5\); expected \(low, high\) with 0 < low"),
+        ({"scale_range": (1.2, 0.8)}, r"^scale_range is \(1.2, 0.8\); expected \(low, high\) with 0 < low <= high$"),
+        ({"scale_range": (0.8, math.inf)}, r"^scale_range\[1\] is inf; expected a finite number$"),
+    ])
+    def test_invalid_arguments(self, options, message):
+        arguments = {"count": 2, "size": 32, "seed": 0} | options
+        with pytest.raises(InputError, match=message):
+            random_poses(**arguments)
 
 
 def _phantom() -> dict[str, sitk.Image]:
@@ -110,6 +142,29 @@ class TestPseudoCT:
                                for seed in (3, 3, 4))
         np.testing.assert_array_equal(first, again)
         assert 5 < np.std(first[:5, :5, :5].astype(float) - other[:5, :5, :5]) / math.sqrt(2) < 20
+
+    def test_negative_seed_is_refused(self):
+        images = _phantom()
+        with pytest.raises(InputError, match="^seed is -1; expected an integer >= 0$"):
+            pseudo_ct(images["mr"], bone=images["bone"], seed=-1)
+
+    @pytest.mark.parametrize("options,message", [
+        ({"noise_hu": math.nan}, "^noise_hu is nan; expected a finite number >= 0$"),
+        ({"noise_hu": -5.0}, "^noise_hu is -5.0; expected a finite number >= 0$"),
+        ({"cortex_mm": math.nan}, "^cortex_mm is nan; expected a finite number > 0$"),
+        ({"cortex_mm": 0.0}, "^cortex_mm is 0.0; expected a finite number > 0$"),
+        ({"blur_mm": -1.0}, "^blur_mm is -1.0; expected a finite number >= 0$"),
+        ({"air": -math.inf}, "^air is -inf; expected a finite number$"),
+        ({"bone_core": math.nan}, "^bone_core is nan; expected a finite number$"),
+        ({"soft_tissue": (60.0, math.nan)}, r"^soft_tissue\[1\] is nan; expected a finite number$"),
+        ({"soft_tissue": 60.0}, r"^soft_tissue is 60.0 \(float\); expected a tuple of 2 values$"),
+        ({"t1_ratios": (0.3, 1.0)}, r"^t1_ratios is \(0.3, 1.0\): 2 values; expected 3$"),
+        ({"t1_ratios": (0.0, 0.75, 1.0)}, r"^t1_ratios\[0\] is 0.0; expected a finite number > 0$"),
+        ({"t1_ratios": (0.75, 0.3, 1.0)}, r"^t1_ratios is \(0.75, 0.3, 1.0\); expected CSF < grey matter < white"),
+    ])
+    def test_invalid_tissues(self, options, message):
+        with pytest.raises(InputError, match=message):
+            CTTissues(**options)
 
     def test_mask_off_the_grid_is_refused(self):
         images = _phantom()

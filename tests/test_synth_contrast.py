@@ -64,9 +64,17 @@ class TestCommon:
         with pytest.raises(InputError, match=message):
             function(torch.zeros(shape), _seeded(0))
 
-    def test_integer_volumes_are_refused(self, function):
-        with pytest.raises(InputError, match="dtype torch.int64; expected float32 or float64"):
-            function(torch.zeros(1, 1, 8, 8, 8, dtype=torch.long), _seeded(0))
+    @pytest.mark.parametrize("other", [torch.long, torch.float16, torch.bfloat16], ids=str)
+    def test_other_dtypes_are_refused(self, function, other):
+        with pytest.raises(InputError, match=rf"volume has dtype {other}; expected float32 or float64"):
+            function(torch.zeros(1, 1, 8, 8, 8, dtype=other), _seeded(0))
+
+    @pytest.mark.parametrize("value", [math.nan, math.inf])
+    def test_non_finite_volumes_are_refused(self, function, value):
+        volume = _ramp(1)
+        volume[0, 0, 3, 4, 5] = value
+        with pytest.raises(InputError, match="^volume contains NaN or infinite values; expected finite intensities"):
+            function(volume, _seeded(0))
 
 
 class TestRandomIntensityMap:
@@ -100,9 +108,14 @@ class TestRandomIntensityMap:
             torch.testing.assert_close(segment.diff(n=2, dim=-1), torch.zeros_like(segment[:, 2:]), atol=1e-12,
                                        rtol=0)
 
-    def test_too_few_knots(self):
-        with pytest.raises(InputError, match="knots is 1; a piecewise-linear map needs at least 2"):
-            random_intensity_map(_ramp(1), _seeded(0), knots=1)
+    @pytest.mark.parametrize("options,message", [
+        ({"knots": 1}, "^knots is 1; expected an integer >= 2$"),
+        ({"knots": 2.5}, r"^knots is 2.5 \(float\); expected an integer >= 2$"),
+        ({"monotonic": "false"}, r"^monotonic is 'false' \(str\); expected True or False$"),
+    ])
+    def test_bad_arguments(self, options, message):
+        with pytest.raises(InputError, match=message):
+            random_intensity_map(_ramp(1), _seeded(0), **options)
 
 
 class TestBiasField:
@@ -124,9 +137,22 @@ class TestBiasField:
         volume, _ = _tissues()
         torch.testing.assert_close(bias_field(volume, _seeded(2), strength=0.0), volume, rtol=0, atol=0)
 
-    def test_bad_order(self):
-        with pytest.raises(InputError, match="bias field of order 0 and strength 0.3; expected order >= 1"):
-            bias_field(_ramp(1), _seeded(0), order=0)
+    @pytest.mark.parametrize("options,message", [
+        ({"order": 0}, "^order is 0; expected an integer >= 1$"),
+        ({"strength": math.nan}, "^strength is nan; expected a finite number >= 0 and <= 80$"),
+        ({"strength": math.inf}, "^strength is inf; expected a finite number >= 0 and <= 80$"),
+        ({"strength": -0.1}, "^strength is -0.1; expected a finite number >= 0 and <= 80$"),
+        # exp(100) overflows float32: the background's 0 * inf was NaN.
+        ({"strength": 100.0}, "^strength is 100.0; expected a finite number >= 0 and <= 80$"),
+    ])
+    def test_bad_arguments(self, options, message):
+        with pytest.raises(InputError, match=message):
+            bias_field(_ramp(1), _seeded(0), **options)
+
+    def test_the_strongest_field_stays_finite_in_float32(self):
+        volume, _ = _tissues()
+        biased = bias_field(volume.float().expand(8, -1, -1, -1, -1), _seeded(0), strength=80.0)
+        assert torch.isfinite(biased).all()
 
 
 class TestBlur:
@@ -214,6 +240,10 @@ class TestNoise:
         with pytest.raises(InputError, match="std_range"):
             noise(_ramp(1), _seeded(0), std_range=(-0.1, 0.1))
 
+    def test_rician_must_be_a_flag(self):
+        with pytest.raises(InputError, match=r"^rician is 'no' \(str\); expected True or False$"):
+            noise(_ramp(1), _seeded(0), rician="no")
+
 
 class TestRandomModality:
     def test_in_the_unit_interval_and_tissue_order_varies(self):
@@ -224,6 +254,10 @@ class TestRandomModality:
         bright = out[:, 0][:, labels == 2].median(-1).values
         middle = out[:, 0][:, labels == 3].median(-1).values
         assert ((bright > middle).any() and (bright < middle).any()).item()
+
+    def test_too_strong_a_bias_is_refused(self):
+        with pytest.raises(InputError, match="^bias_strength is 100.0; expected a finite number >= 0 and <= 80$"):
+            ContrastConfig(bias_strength=100.0)
 
     def test_without_acquisition_effects_it_is_an_intensity_map(self):
         quiet = ContrastConfig(bias_strength=0.0, sigma_range=(0.0, 0.0), factor_range=(1.0, 1.0),

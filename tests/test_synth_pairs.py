@@ -10,7 +10,7 @@ import torch
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import affine_points, rotation_angle, warp
 from dpcn_med.solver import solve
-from dpcn_med.synth import PairConfig, synthetic_pairs
+from dpcn_med.synth import PairConfig, slab_mask, synthetic_pairs
 from dpcn_med.synth.contrast import _gaussian_blur
 from tests.conftest import volume_grid
 
@@ -116,6 +116,20 @@ class TestSlabCrop:
             # The slab stops at the first slice that brings the share to the overlap.
             assert share >= 0.7 > share - last_share
 
+    @pytest.mark.parametrize("options,message", [
+        ({"fraction": math.nan}, r"^fraction is nan; expected a finite number > 0 and <= 1$"),
+        ({"fraction": 1.5}, r"^fraction is 1.5; expected a finite number > 0 and <= 1$"),
+        ({"fraction": 0.0}, r"^fraction is 0.0; expected a finite number > 0 and <= 1$"),
+        ({"fraction": -0.2}, r"^fraction is -0.2; expected a finite number > 0 and <= 1$"),
+        ({"axis": 3}, "^axis is 3; expected an integer >= 0 and <= 2$"),
+        ({"axis": -1}, "^axis is -1; expected an integer >= 0 and <= 2$"),
+        ({"from_end": "yes"}, r"^from_end is 'yes' \(str\); expected True or False$"),
+    ])
+    def test_slab_mask_refuses_bad_arguments(self, options, message):
+        foreground = volume_grid("mni", 16)[0, 0] > 0
+        with pytest.raises(InputError, match=message):
+            slab_mask(foreground, **({"fraction": 0.5, "axis": 0, "from_end": False} | options))
+
     def test_no_crop_without_probability(self):
         head = volume_grid("mni", 16, torch.float64).expand(4, -1, -1, -1, -1)
         fixed, _, _ = _identity_pairs(head, seed=5, config=PairConfig(overlap_range=(0.6, 0.6), crop_probability=0.0))
@@ -179,6 +193,17 @@ class TestInvalidArguments:
     def test_malformed_volumes(self, shape, message):
         with pytest.raises(InputError, match=message):
             synthetic_pairs(torch.ones(shape), _seeded(0))
+
+    @pytest.mark.parametrize("half", [torch.float16, torch.bfloat16], ids=str)
+    def test_half_precision_is_refused(self, half):  # torch.linalg.inv of the poses failed on it
+        with pytest.raises(InputError, match=rf"^volumes has dtype {half}; expected float32 or float64"):
+            synthetic_pairs(torch.ones(1, 1, 8, 8, 8, dtype=half), _seeded(0))
+
+    def test_non_finite_volumes_are_refused(self):
+        volumes = torch.ones(1, 1, 8, 8, 8)
+        volumes[0, 0, 1, 2, 3] = math.nan
+        with pytest.raises(InputError, match="^volumes contains NaN or infinite values"):
+            synthetic_pairs(volumes, _seeded(0))
 
 
 @pytest.mark.cuda

@@ -88,16 +88,53 @@ class TestSimulatedUltrasound:
         for out in (ultrasound, fov):
             assert out.shape == ct.shape and out.device == ct.device and out.dtype == dtype
 
+    def test_a_strong_impedance_contrast_stays_finite(self):
+        # exp(impedance_gain * ct) overflowed float32 from a gain of 89: inf / inf made every voxel NaN.
+        strong = UltrasoundConfig(half_angle_degrees=(35.0, 35.0), depth_range=(0.8, 0.8), impedance_gain=200.0)
+        ultrasound, fov = simulated_ultrasound(_phantom().float(), _seeded(1), probe=ALONG_Z, config=strong)
+        assert torch.isfinite(ultrasound).all() and (ultrasound[fov == 1] > 0).any()
+
     @pytest.mark.parametrize("probe,message", [
         (torch.ones(2, 3), r"probe has shape \(2, 3\); expected \(3,\) or \(1, 3\) directions"),
         (torch.zeros(3), "probe contains a zero vector"),
+        (torch.tensor([0.0, math.nan, 1.0]), "^probe contains a NaN or infinite value; a beam direction must be"),
+        (torch.tensor([math.inf, 0.0, 1.0]), "^probe contains a NaN or infinite value"),
     ])
     def test_malformed_probe(self, probe, message):
         with pytest.raises(InputError, match=message):
             simulated_ultrasound(_phantom(), _seeded(0), probe=probe)
+
+    def test_non_finite_volumes_are_refused(self):
+        ct = _phantom()
+        ct[0, 0, 10, 10, 10] = math.nan
+        with pytest.raises(InputError, match="^ct contains NaN or infinite values"):
+            simulated_ultrasound(ct, _seeded(0))
 
     def test_empty_or_non_cubic_volumes_are_refused(self):
         with pytest.raises(InputError, match="ct contains an empty volume"):
             simulated_ultrasound(torch.zeros(1, 1, 8, 8, 8), _seeded(0))
         with pytest.raises(InputError, match=r"spatial shape \(8, 8, 6\), not cubic"):
             simulated_ultrasound(torch.ones(1, 1, 8, 8, 6), _seeded(0))
+
+
+class TestUltrasoundConfig:
+    @pytest.mark.parametrize("options,message", [
+        ({"half_angle_degrees": (0.0, 0.0)}, r"^half_angle_degrees is \(0.0, 0.0\); expected \(low, high\) with 0 <"),
+        ({"half_angle_degrees": (0.0, 30.0)}, r"^half_angle_degrees is \(0.0, 30.0\); expected \(low, high\) "
+                                              r"with 0 < low <= high <= 89$"),
+        ({"depth_range": (0.0, 0.0)}, r"^depth_range is \(0.0, 0.0\); expected \(low, high\) with 0 < low <= high <= 2 "
+                                      r"\(fractions of the grid side N\)$"),
+        ({"depth_range": (100.0, 100.0)}, r"^depth_range is \(100.0, 100.0\); expected \(low, high\) with 0 < low"),
+        ({"depth_range": (0.8, 0.4)}, r"^depth_range is \(0.8, 0.4\); expected \(low, high\) with 0 < low"),
+        ({"depth_range": (0.4, math.inf)}, r"^depth_range\[1\] is inf; expected a finite number$"),
+        ({"impedance_gain": math.nan}, "^impedance_gain is nan; expected a finite number >= 0"),
+        ({"impedance_gain": 1e39}, r"^impedance_gain is 1e\+39; expected a finite number >= 0 and <= 3.4"),
+        ({"reflection_gain": 0.0, "scatter_gain": 0.0}, "^reflection_gain and scatter_gain are both 0"),
+    ])
+    def test_settings_that_give_nan_or_blank_volumes_are_refused(self, options, message):
+        with pytest.raises(InputError, match=message):
+            UltrasoundConfig(**options)
+
+    def test_either_gain_alone_is_enough(self):
+        UltrasoundConfig(reflection_gain=0.0)
+        UltrasoundConfig(scatter_gain=0.0)

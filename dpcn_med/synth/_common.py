@@ -13,15 +13,18 @@ from dpcn_med.errors import InputError
 
 
 def check_volumes(name: str, volumes: Tensor, *, cubic: bool = False) -> int:
-    """Refuse anything but a floating batch ``(B, 1, D, H, W)`` (cubic when asked); return ``D``."""
+    """Refuse anything but a finite float32 or float64 batch ``(B, 1, D, H, W)`` (cubic when asked); return ``D``."""
     if volumes.dim() != 5 or volumes.shape[1] != 1 or min(volumes.shape, default=0) == 0:
         raise InputError(f"{name} has shape {tuple(volumes.shape)}; expected a batch of volumes (B, 1, D, H, W) in "
                          "torch order (z, y, x)")
-    if not volumes.is_floating_point():
+    # Half precision is refused too: the poses' matrix inverse (torch.linalg.inv) has no float16 or bfloat16 kernel.
+    if volumes.dtype not in (torch.float32, torch.float64):
         raise InputError(f"{name} has dtype {volumes.dtype}; expected float32 or float64 intensities in [0, 1]")
     if cubic and len(set(volumes.shape[2:])) != 1:
         raise InputError(f"{name} has spatial shape {tuple(volumes.shape[2:])}, not cubic; resample onto a canonical "
                          "N^3 grid first (dpcn_med.preprocess.solver_grid)")
+    if not bool(torch.isfinite(volumes).all()):
+        raise InputError(f"{name} contains NaN or infinite values; expected finite intensities in [0, 1]")
     return volumes.shape[2]
 
 

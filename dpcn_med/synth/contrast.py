@@ -16,8 +16,11 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from dpcn_med.arguments import check_flag, check_integer, check_pair, check_real
-from dpcn_med.errors import InputError
 from dpcn_med.synth._common import check_volumes, integers, normal, uniform
+
+MAX_BIAS_STRENGTH = 80.0
+"""Largest bias strength: the field's extremes ``exp(+-80)`` stay normal float32 numbers (``exp(89)`` overflows, and
+the background's ``0 * inf`` is NaN)."""
 
 
 @dataclass(frozen=True)
@@ -28,7 +31,7 @@ class ContrastConfig:
         knots: control points of the random intensity map, equally spaced over ``[0, 1]``.
         monotonic: increasing intensity maps only (same contrast family) instead of any map (bone bright on one,
             dark on the other).
-        bias_strength: largest ``|log|`` of the multiplicative bias field.
+        bias_strength: largest ``|log|`` of the multiplicative bias field, at most :data:`MAX_BIAS_STRENGTH`.
         bias_order: highest total degree of the field's Legendre polynomials.
         sigma_range: Gaussian blur, voxels.
         factor_range: slice thickness, in voxels, of the resolution loss along one axis (1 = none).
@@ -49,7 +52,7 @@ class ContrastConfig:
         """Refuse what would make NaN or blank volumes (a NaN bias strength did), naming the field."""
         check_integer("knots", self.knots, minimum=2)
         check_flag("monotonic", self.monotonic)
-        check_real("bias_strength", self.bias_strength, minimum=0.0)
+        check_real("bias_strength", self.bias_strength, minimum=0.0, maximum=MAX_BIAS_STRENGTH)
         check_integer("bias_order", self.bias_order, minimum=1)
         check_pair("sigma_range", self.sigma_range, minimum=0.0, equal=True)
         check_pair("factor_range", self.factor_range, minimum=1.0, equal=True)
@@ -80,8 +83,8 @@ def random_intensity_map(volume: Tensor, generator: torch.Generator, *, knots: i
         ``(B, 1, D, H, W)`` in ``[0, 1]``, 0 exactly where ``volume`` is 0.
     """
     check_volumes("volume", volume)
-    if knots < 2:
-        raise InputError(f"knots is {knots}; a piecewise-linear map needs at least 2 control points")
+    knots = check_integer("knots", knots, minimum=2)
+    check_flag("monotonic", monotonic)
     outputs = uniform(generator, (volume.shape[0], knots), 0.0, 1.0, like=volume)
     if monotonic:
         outputs = outputs.sort(-1).values
@@ -113,7 +116,7 @@ def bias_field(volume: Tensor, generator: torch.Generator, *, strength: float = 
     Args:
         volume: ``(B, 1, D, H, W)``.
         generator: source of randomness.
-        strength: largest ``|log|`` of the field, at least 0.
+        strength: largest ``|log|`` of the field, in ``[0, MAX_BIAS_STRENGTH]``.
         order: highest total degree, at least 1.
 
     Returns:
@@ -121,8 +124,8 @@ def bias_field(volume: Tensor, generator: torch.Generator, *, strength: float = 
     """
     # Written out rather than MONAI's RandBiasField: that one draws from numpy, one volume at a time, on the host.
     check_volumes("volume", volume)
-    if order < 1 or strength < 0:
-        raise InputError(f"bias field of order {order} and strength {strength}; expected order >= 1, strength >= 0")
+    strength = check_real("strength", strength, minimum=0.0, maximum=MAX_BIAS_STRENGTH)
+    order = check_integer("order", order, minimum=1)
     batch = volume.shape[0]
     size = order + 1
     degree = torch.arange(size, device=volume.device)
@@ -219,6 +222,7 @@ def noise(volume: Tensor, generator: torch.Generator, *,
     # Written out rather than MONAI's RandGaussianNoise / RandRicianNoise: those draw from numpy on the host.
     check_volumes("volume", volume)
     check_pair("std_range", std_range, minimum=0.0, equal=True)
+    check_flag("rician", rician)
     std = _per_sample(uniform(generator, (volume.shape[0],), *std_range, like=volume))
     real = volume + std * normal(generator, tuple(volume.shape), like=volume)
     if not rician:

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from dpcn_med.arguments import check_pair
+from dpcn_med.arguments import check_flag, check_integer, check_pair, check_real
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import random_rotation, warp
 from dpcn_med.solver import PoseTarget
@@ -99,7 +99,13 @@ def slab_mask(foreground: Tensor, fraction: float, axis: int, from_end: bool) ->
 
     Returns:
         ``(D, H, W)`` float32 mask, broadcast along the other two axes.
+
+    Raises:
+        InputError: ``fraction`` outside ``(0, 1]``, ``axis`` not 0, 1 or 2, or ``from_end`` not a bool.
     """
+    check_real("fraction", fraction, minimum=0.0, maximum=1.0, above=True)
+    axis = check_integer("axis", axis, minimum=0, maximum=2)
+    check_flag("from_end", from_end)
     profile = foreground.float().sum([a for a in range(3) if a != axis])
     if from_end:
         profile = profile.flip(0)

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from dpcn_med.arguments import check_flag, check_integer, check_pair, check_real
 from dpcn_med.geometry import geodesic_distance, random_rotation, rotation_2d, warp
 
 
@@ -29,13 +30,13 @@ class Pose:
         """The moving grid this pose maps onto ``fixed``: ``moving(q) = fixed(A^-1 (q - t))``, ``A = scale R``.
 
         Args:
-            fixed: ``(B, C, N, N, N)`` or ``(B, C, N, N)``.
+            fixed: ``(B, C, N, N, N)`` or ``(B, C, N, N)``, any device and dtype (the pose's tensors move there).
 
         Returns:
-            Same shape; content leaving the grid is lost, new content is zero.
+            Same shape, device and dtype; content leaving the grid is lost, new content is zero.
         """
-        inverse = torch.linalg.inv(self.scale * self.rotation.to(fixed.dtype))
-        offset = -(inverse @ self.translation.to(fixed.dtype))
+        inverse = torch.linalg.inv(self.scale * self.rotation.to(fixed))
+        offset = -(inverse @ self.translation.to(fixed))
         return warp(fixed, inverse.expand(fixed.shape[0], -1, -1), offset.expand(fixed.shape[0], -1))
 
     def errors(self, rotation: Tensor, scale: Tensor | float, translation: Tensor) -> tuple[float, float, float]:
@@ -61,19 +62,28 @@ def random_poses(count: int, size: int, seed: int, *, similarity: bool = True, d
     """Random poses from a fixed seed.
 
     Args:
-        count: how many.
-        size: grid size ``N``; shifts default to at most ``0.2 N``.
+        count: how many, at least 0.
+        size: grid size ``N``, at least 1; shifts default to at most ``0.2 N``.
         seed: seed of the generator (the same seed gives the same poses).
         similarity: draw a scale in ``scale_range`` (True) or keep 1.
         dim: 3 (rotation uniform over SO(3)) or 2 (angle uniform in ``[0, 2 pi)``).
-        scale_range: scale interval.
-        max_shift: largest shift length in voxels (direction uniform, length uniform in ``[0, max_shift]``).
+        scale_range: scale interval, ``0 < low <= high``.
+        max_shift: largest shift length in voxels, at least 0 (direction uniform, length uniform in
+            ``[0, max_shift]``).
 
     Returns:
         ``count`` float64 :class:`Pose` objects.
+
+    Raises:
+        InputError: an argument is outside the range above, or not finite.
     """
+    count = check_integer("count", count, minimum=0)
+    size = check_integer("size", size, minimum=1)
+    similarity = check_flag("similarity", similarity)
+    dim = check_integer("dim", dim, minimum=2, maximum=3)
+    scale_range = check_pair("scale_range", scale_range, minimum=0.0, above=True, equal=True)
     generator = torch.Generator().manual_seed(seed)
-    limit = 0.2 * size if max_shift is None else max_shift
+    limit = 0.2 * size if max_shift is None else check_real("max_shift", max_shift, minimum=0.0)
     poses = []
     for _ in range(count):
         if dim == 3:

@@ -8,6 +8,7 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
+from dpcn_med.arguments import check_integer, check_real, check_sequence
 from dpcn_med.errors import InputError
 from dpcn_med.preprocess import foreground_mask, normalize_intensity
 
@@ -22,12 +23,12 @@ class CTTissues:
             brightest is fat, the least dense).
         csf, grey_matter, white_matter: HU of the brain's tissues.
         t1_ratios: T1 intensities of CSF, grey and white matter relative to white matter, the anchors of the
-            brain's intensity map (T1 contrast assumed).
+            brain's intensity map (T1 contrast assumed): positive and increasing.
         bone_surface, bone_core: HU of cortical bone on the surface voxels of the bone mask and deep inside it
             (diploe).
-        cortex_mm: depth in mm over which bone falls from ``bone_surface`` to ``bone_core`` (e-folding).
-        blur_mm: Gaussian sigma of the scanner's resolution, mm.
-        noise_hu: standard deviation of the added white noise, HU.
+        cortex_mm: depth in mm over which bone falls from ``bone_surface`` to ``bone_core`` (e-folding), above 0.
+        blur_mm: Gaussian sigma of the scanner's resolution, mm, at least 0.
+        noise_hu: standard deviation of the added white noise, HU, at least 0.
     """
 
     air: float = -1000.0
@@ -41,6 +42,21 @@ class CTTissues:
     cortex_mm: float = 1.5
     blur_mm: float = 0.6
     noise_hu: float = 10.0
+
+    def __post_init__(self) -> None:
+        """Refuse what would make a blank or wrong CT (a NaN noise zeroed it, a NaN cortex zeroed the bone), naming
+        the field."""
+        for name in ("air", "csf", "grey_matter", "white_matter", "bone_surface", "bone_core"):
+            check_real(name, getattr(self, name))
+        for index, value in enumerate(check_sequence("soft_tissue", self.soft_tissue, length=2)):
+            check_real(f"soft_tissue[{index}]", value)
+        ratios = tuple(check_real(f"t1_ratios[{index}]", value, minimum=0.0, above=True)
+                       for index, value in enumerate(check_sequence("t1_ratios", self.t1_ratios, length=3)))
+        if not ratios[0] < ratios[1] < ratios[2]:  # np.interp needs increasing anchors
+            raise InputError(f"t1_ratios is {ratios!r}; expected CSF < grey matter < white matter (T1 contrast)")
+        check_real("cortex_mm", self.cortex_mm, minimum=0.0, above=True)
+        check_real("blur_mm", self.blur_mm, minimum=0.0)
+        check_real("noise_hu", self.noise_hu, minimum=0.0)
 
 
 HEAD_CT = CTTissues()
@@ -85,15 +101,16 @@ def pseudo_ct(mr: sitk.Image, *, bone: sitk.Image, brain: sitk.Image | None = No
         bone: binary mask of the skull (nonzero is bone) on the MR's grid.
         brain: binary brain mask on the MR's grid; without it the brain is treated as soft tissue.
         head: binary head mask on the MR's grid; defaults to :func:`dpcn_med.preprocess.foreground_mask` of ``mr``.
-        seed: seed of the noise (the same seed gives the same image).
+        seed: seed of the noise, at least 0 (the same seed gives the same image).
         tissues: Hounsfield units and acquisition.
 
     Returns:
         int16 image in HU with the MR's size, origin, spacing and direction.
 
     Raises:
-        InputError: ``mr`` is not a 3-D scalar volume, or a mask is not on its grid.
+        InputError: ``mr`` is not a 3-D scalar volume, a mask is not on its grid, or ``seed`` is not an integer >= 0.
     """
+    seed = check_integer("seed", seed, minimum=0)
     if mr.GetDimension() != 3 or mr.GetNumberOfComponentsPerPixel() != 1:
         raise InputError(f"mr is a {mr.GetDimension()}-D image with {mr.GetNumberOfComponentsPerPixel()} components "
                          "per voxel; expected a 3-D scalar volume")

@@ -20,15 +20,17 @@ class UltrasoundConfig:
     phased array on a canonical grid (the object spans about half of it).
 
     Attributes:
-        half_angle_degrees: half-angle of the cone of view, uniform in this interval.
-        depth_range: reach of the beams from the apex, fraction of the grid side ``N``, uniform in this interval.
+        half_angle_degrees: half-angle of the cone of view, uniform in this interval inside ``(0, 89]``.
+        depth_range: reach of the beams beyond the standoff, fraction of the grid side ``N``, uniform in this interval
+            inside ``(0, 2]`` (the grid's diagonal is ``1.73 N``).
         standoff: the apex lies this fraction of ``N`` before the object's first voxel along the probe direction.
         impedance_gain: acoustic impedance ``exp(impedance_gain * ct)`` (relative; monotonic in the CT value).
         attenuation: absorption of tissue per grid side, times the CT value.
         bone_level: CT value from which absorption rises towards that of bone (reached at 1).
         bone_attenuation: extra absorption of bone per grid side (a skull casts an acoustic shadow).
         reflection_gain: weight of the specular echoes at impedance changes.
-        scatter_gain: weight of the diffuse backscatter of tissue, proportional to its CT value.
+        scatter_gain: weight of the diffuse backscatter of tissue, proportional to its CT value (this or
+            ``reflection_gain`` positive).
     """
 
     half_angle_degrees: tuple[float, float] = (30.0, 45.0)
@@ -42,12 +44,19 @@ class UltrasoundConfig:
     scatter_gain: float = 0.2
 
     def __post_init__(self) -> None:
-        """Refuse what would make NaN or blank volumes (an infinite impedance gain, a NaN standoff did)."""
-        check_pair("half_angle_degrees", self.half_angle_degrees, minimum=0.0, maximum=89.0, equal=True)
-        check_pair("depth_range", self.depth_range, minimum=0.0, equal=True)
-        for name in ("standoff", "impedance_gain", "attenuation", "bone_attenuation", "reflection_gain",
-                     "scatter_gain"):
+        """Refuse what would make NaN or blank volumes (an infinite impedance gain, a NaN standoff, a zero half-angle
+        or depth, no echo at all did)."""
+        check_pair("half_angle_degrees", self.half_angle_degrees, minimum=0.0, maximum=89.0, above=True, equal=True)
+        # A reach far past the grid spends the beam's N range samples outside it: (100, 100) gave a blank volume.
+        check_pair("depth_range", self.depth_range, minimum=0.0, maximum=2.0, above=True, equal=True,
+                   note=" (fractions of the grid side N)")
+        for name in ("standoff", "attenuation", "bone_attenuation", "reflection_gain", "scatter_gain"):
             check_real(name, getattr(self, name), minimum=0.0)
+        # At most float32's largest number: a larger gain is inf on float32 volumes, and inf times a zero change
+        # along the beam NaN.
+        check_real("impedance_gain", self.impedance_gain, minimum=0.0, maximum=torch.finfo(torch.float32).max)
+        if self.reflection_gain == 0 and self.scatter_gain == 0:
+            raise InputError("reflection_gain and scatter_gain are both 0: every echo would be 0; make one positive")
         check_real("bone_level", self.bone_level, minimum=0.0, maximum=1.0, below=True)
 
 
@@ -58,6 +67,8 @@ def _probe_directions(probe: Tensor | None, batch: int, generator: torch.Generat
     probe = torch.as_tensor(probe, device=like.device, dtype=like.dtype)
     if probe.shape not in ((3,), (batch, 3)):
         raise InputError(f"probe has shape {tuple(probe.shape)}; expected (3,) or ({batch}, 3) directions (x, y, z)")
+    if not bool(torch.isfinite(probe).all()):
+        raise InputError("probe contains a NaN or infinite value; a beam direction must be finite")
     length = probe.norm(dim=-1, keepdim=True)
     if not bool((length > 0).all()):
         raise InputError("probe contains a zero vector; a beam direction must be nonzero")
@@ -76,10 +87,11 @@ def _lateral_axes(direction: Tensor) -> tuple[Tensor, Tensor]:
 
 def _echoes(ct_fan: Tensor, step: Tensor, config: UltrasoundConfig) -> Tensor:
     """Echo strength along the beams of a fan ``(B, 1, R, V, U)`` (range first), ``step`` ``(B,)`` grid sides."""
-    impedance = torch.exp(config.impedance_gain * ct_fan)
-    before = torch.cat([impedance[:, :, :1], impedance[:, :, :-1]], 2)
-    # Intensity reflection coefficient of the impedance change along the beam between consecutive samples.
-    reflection = ((impedance - before) / (impedance + before)) ** 2
+    # Intensity reflection coefficient ((Z - Z') / (Z + Z'))^2 of the impedance change Z' -> Z = exp(gain * ct)
+    # between consecutive samples along the beam, written as tanh(gain * (ct - ct') / 2)^2: the same quantity, without
+    # the exponential, which overflowed float32 from a gain of 89 (inf / inf, NaN).
+    change = torch.diff(ct_fan, dim=2, prepend=ct_fan[:, :, :1])
+    reflection = torch.tanh(0.5 * config.impedance_gain * change) ** 2
     transmitted = torch.cumprod(1.0 - reflection, 2)
     transmitted = torch.cat([torch.ones_like(transmitted[:, :, :1]), transmitted[:, :, :-1]], 2)
     bone = ((ct_fan - config.bone_level) / (1.0 - config.bone_level)).clamp(0.0, 1.0)
@@ -113,7 +125,7 @@ def simulated_ultrasound(ct: Tensor, generator: torch.Generator, *, probe: Tenso
         ultrasound is 0).
 
     Raises:
-        InputError: ``ct`` is not a cubic batch, a volume is empty, or ``probe`` is malformed.
+        InputError: ``ct`` is not a finite cubic batch, a volume is empty, or ``probe`` is malformed or not finite.
 
     Convention:
         Voxel coordinates ``(x, y, z)`` from the grid centre, as in :mod:`dpcn_med.geometry`. The apex sits on the
@@ -122,8 +134,6 @@ def simulated_ultrasound(ct: Tensor, generator: torch.Generator, *, probe: Tenso
         depth, as with a real probe) and the echoes are resampled back onto the grid.
     """
     size = check_volumes("ct", ct, cubic=True)
-    check_pair("half_angle_degrees", config.half_angle_degrees, minimum=0.0, maximum=89.0, equal=True)
-    check_pair("depth_range", config.depth_range, minimum=0.0, equal=True)
     foreground = ct[:, 0] > 0
     if not bool(foreground.flatten(1).any(-1).all()):
         raise InputError("ct contains an empty volume (no voxel above 0); the probe needs an object to image")
