@@ -26,7 +26,7 @@ from dpcn_med.register import Refinement, register
 from dpcn_med.solver import SolverConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
 
 ROOT = Path(__file__).resolve().parents[1]
 SETTINGS = {
@@ -62,9 +62,9 @@ def measure(case: str, repeats: int) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])  # its first line ends mid-sentence
     parser.add_argument("--cases", nargs="+", default=list(QUICK.cases), choices=list(CASES))
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=count_type(), default=3)
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "candidate_cost.md")
     args = parser.parse_args(argv)
     rows = [row for case in args.cases for row in measure(case, args.repeats)]

@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("read", "preprocess", "solve", "refine", "resample", "total")
@@ -49,13 +49,18 @@ def _label(tree: Path) -> str:
 
 
 def _run(tree: Path, fixed: Path, moving: Path, extra: list[str], folder: Path) -> dict[str, float]:
-    """One registration in a fresh process with ``tree`` first on the path: its wall time and report timings."""
+    """One registration in a fresh process with ``tree`` (absolute: the process runs in ``folder``) first on the path:
+    its wall time and report timings."""
+    from dpcn_med.cli import EXIT_LOW_CONFIDENCE, EXIT_OK
+
     output = folder / "out"
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])}
+    command = [sys.executable, "-m", "dpcn_med", "register", str(fixed), str(moving), "-o", str(output), "-q", *extra]
     started = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "dpcn_med", "register", str(fixed), str(moving), "-o", str(output), "-q",
-                    *extra], check=True, env=environment, cwd=folder)
+    code = subprocess.run(command, env=environment, cwd=folder).returncode
     wall = time.perf_counter() - started
+    if code not in (EXIT_OK, EXIT_LOW_CONFIDENCE):  # low confidence is a result written like any other
+        raise subprocess.CalledProcessError(code, command)
     timings = json.loads((output / "report.json").read_text())["timings_s"]
     shutil.rmtree(output)
     return {"wall": wall, **{stage: timings.get(stage, 0.0) for stage in STAGES}}
@@ -75,7 +80,7 @@ def table(results: dict[tuple[str, str], list[dict[str, float]]]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5, help="runs per source tree and options")
+    parser.add_argument("--repeats", type=count_type(), default=5, help="runs per source tree and options")
     parser.add_argument("--compare", type=Path, nargs="*", default=[], help="other source trees, alternated with this")
     parser.add_argument("--pair", type=Path, nargs=2, metavar=("FIXED", "MOVING"), help="default: the demo's pair")
     parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
@@ -89,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     from dpcn_med import io
     from dpcn_med.demo import demo_pair
 
-    trees = [ROOT, *args.compare]
+    trees = [ROOT, *(tree.resolve() for tree in args.compare)]  # the runs' working folder is a temporary one
     labels = [_label(tree) for tree in trees]
     results: dict[tuple[str, str], list[dict[str, float]]] = {}
     with tempfile.TemporaryDirectory(prefix="dpcn-med-cli-time-") as name:

@@ -39,8 +39,14 @@ from dpcn_med.preprocess import foreground_mask
 from dpcn_med.register import register
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
-from partial_fov import CASES, case_images, cell_poses  # noqa: E402  (the same slabs and poses)
+from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from partial_fov import (  # noqa: E402  (the same slabs and poses)
+    CASES,
+    case_images,
+    cell_poses,
+    check_overlaps,
+    overlap_type,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 SIGNALS = {"confidence": 1, "overlap": 1, "mattes_mi": -1, "nmi": 1, "runner_up_gap": 1}
@@ -136,8 +142,9 @@ def separation(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
-    parser.add_argument("--overlaps", nargs="+", type=float, default=[0.6, 0.4])
-    parser.add_argument("--trials", type=int, default=20)
+    parser.add_argument("--overlaps", nargs="+", type=overlap_type, default=[0.6, 0.4],
+                        help="shares of the fixed foreground's extent kept, in (0, 1], whole percents")
+    parser.add_argument("--trials", type=count_type(), default=20)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "failure_signals.md",
                         help="the table; every registration (.csv) goes beside it")
@@ -145,6 +152,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="run nothing: the table of earlier runs' per-pose CSVs")
     parser.add_argument("--note", default="", help="a sentence for the description, e.g. how the combined rows ran")
     args = parser.parse_args(argv)
+    check_overlaps(parser, args.overlaps)
+    args.output.parent.mkdir(parents=True, exist_ok=True)  # before the work: the CSV is written beside the table
     if args.combine:
         rows = [row for path in args.combine for _, row in read_csv(path, ROW_FIELDS)]
     else:

@@ -25,7 +25,7 @@ from dpcn_med.train.data import validation_set, volume_bank
 from dpcn_med.train.loop import SUCCESS_DEGREES, SUCCESS_VOXELS, pose_errors
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -46,7 +46,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, required=True, help="training config: its held-out volumes and pairs")
     parser.add_argument("--models", nargs="+", default=["none"], help="'none' (learning-free) and/or model paths")
-    parser.add_argument("--pairs", type=int, default=200)
+    parser.add_argument("--pairs", type=count_type(2), default=200, help="held-out pairs (at least 2: the table gives "
+                        "a 90th percentile)")
     parser.add_argument("--seed", type=int, default=2025, help="not the config's validation seed: unseen contrasts")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "learned_accuracy.md")

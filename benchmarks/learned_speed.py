@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
 from solver_speed import _elapsed  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -77,9 +77,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--bandwidths", nargs="+", type=int, default=[32, 64])
-    parser.add_argument("--batches", nargs="+", type=int, default=[32, 64])
-    parser.add_argument("--steps", type=int, default=10)
-    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--batches", nargs="+", type=count_type(), default=[32, 64])
+    parser.add_argument("--steps", type=count_type(), default=10)
+    parser.add_argument("--repeats", type=count_type(), default=20)
     parser.add_argument("--no-amp", dest="amp", action="store_false", help="float32 networks on CUDA")
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "learned_speed.md")
     args = parser.parse_args(argv)

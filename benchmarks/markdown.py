@@ -1,13 +1,43 @@
-"""What every benchmark script does with its table: say how it was made, print it, write it under docs/."""
+"""What every benchmark script shares: argparse types for its counts and fractions, and what it does with its table
+(say how it was made, print it, write it under docs/)."""
 
 from __future__ import annotations
 
+import argparse
 import shlex
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from dpcn_med.io import write_text
+
+
+def count_type(minimum: int = 1) -> Callable[[str], int]:
+    """An argparse type for a count (poses, trials, repeats): a whole number of at least ``minimum``, so that a
+    mistyped 0 stops at the command line instead of crashing after the data are loaded."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{value} is too few; give at least {minimum}")
+        return value
+
+    return parse
+
+
+def fraction_type(text: str) -> float:
+    """An argparse type for a share of a whole: a number in (0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0 < value <= 1:  # NaN too
+        raise argparse.ArgumentTypeError(f"{text!r} is not a fraction in (0, 1] (1 is the whole)")
+    return value
 
 
 def generated_by(script: str, argv: list[str] | None) -> str:

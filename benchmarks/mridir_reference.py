@@ -1,9 +1,10 @@
 """The real CT-MR check: MRI-DIR CT onto its T2 (unaligned scanner frames), against an exhaustive MI search.
 
 1. Reference: Mattes mutual information (dpcn_med's refinement: rigid, multi-resolution, fixed-foreground mask)
-   started from every one of ``--starts`` rotations (the 24 rotations of the cube plus seeded uniform ones) with the
-   foreground centres aligned; the start that ends with the lowest metric gives the reference alignment. Also
-   reported: how many starts reach it, and where a single local search from the image centres ends.
+   started from every one of ``--starts`` rotations (the 24 rotations of the cube, then seeded uniform ones; the
+   cube's first ones below 24) with the foreground centres aligned; the start that ends with the lowest metric gives
+   the reference alignment. Also reported: how many starts reach it, and where a single local search from the image
+   centres ends.
 2. ``dpcn_med.register`` with a model (learning-free by default) from the stored pose and from ``--rotations``
    extra random rotations of the CT about its centre (uniform over SO(3)): the angle and the largest corner
    distance (mm, over the T2 foreground's bounding box) to the reference, and how many are within 3 degrees and
@@ -31,7 +32,7 @@ from dpcn_med.preprocess import Preprocessing, foreground_box, prepare
 from dpcn_med.register import Refinement, mattes_metric, refine_transform, register
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "mridir"
@@ -50,6 +51,18 @@ def cube_rotations() -> list[np.ndarray]:
             if np.linalg.det(matrix) > 0:
                 found.append(matrix)
     return found
+
+
+def starts_text(starts: int) -> str:
+    """``starts`` starting rotations in words, as :func:`exhaustive_search` takes them (the cube's first)."""
+    cube = len(cube_rotations())
+    if starts == 1:
+        return f"1 starting rotation (the first of the cube's {cube})"
+    if starts < cube:
+        return f"{starts} starting rotations (the first {starts} of the cube's {cube})"
+    uniform = starts - cube
+    extra = "" if uniform == 0 else f" and {uniform} seeded uniform one{'' if uniform == 1 else 's'}"
+    return f"{starts} starting rotations (the cube's {cube}{extra})"
 
 
 def difference(a: sitk.Transform, b: sitk.Transform, corners: np.ndarray) -> tuple[float, float]:
@@ -91,8 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resolution", default="1p5mm", choices=("1p0mm", "1p5mm", "3p0mm"))
     parser.add_argument("--model", default="none", help="'none' (learning-free) or a trained model")
     parser.add_argument("--bandwidth", type=int, default=32)
-    parser.add_argument("--starts", type=int, default=96)
-    parser.add_argument("--rotations", type=int, default=20)
+    parser.add_argument("--starts", type=count_type(), default=96)
+    parser.add_argument("--rotations", type=count_type(0), default=20)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "mridir_reference.md")
     args = parser.parse_args(argv)
@@ -137,8 +150,8 @@ def main(argv: list[str] | None = None) -> int:
              f"as stored (unrelated scanner frames). Distances are the largest over the corners of the T2 "
              f"foreground's bounding box.\n",
              "## Reference alignment\n",
-             f"Mattes MI (dpcn_med's refinement) from {len(runs)} starting rotations (the cube's 24 and seeded "
-             f"uniform ones), foreground centres aligned: {search_seconds:.0f} s; {reaching} of {len(reached)} starts "
+             f"Mattes MI (dpcn_med's refinement) from {starts_text(len(runs))}, foreground centres aligned: "
+             f"{search_seconds:.0f} s; {reaching} of {len(reached)} starts "
              f"end within 3 degrees and 3 mm of the best. A single local search from the image centres ends "
              f"{local_angle:.1f} degrees and {local_distance:.1f} mm away from it"
              f"{' (a wrong optimum)' if local_angle > 3 or local_distance > 3 else ''}.\n",

@@ -6,8 +6,8 @@ uniform over SO(3), translation up to 40 mm. The moving volume is the whole othe
 (:func:`dpcn_med.evaluation.moved_copy`). ``dpcn_med.register`` runs with the command line's defaults; success is a
 target registration error under 2 mm after refinement, over the corners of the slab's foreground box. The local
 baselines of ``dpcn-med benchmark`` (SimpleITK, ANTs, elastix; those installed) register the first
-``--baseline-trials`` poses of each cell. Prints the tables and writes them under docs/, with a figure of success
-against overlap beside them.
+``--baseline-trials`` poses of each cell, and a second dpcn_med row gives its results on those poses alone, like for
+like. Prints the tables and writes them under docs/, with a figure of success against overlap beside them.
 
     python benchmarks/partial_fov.py --trials 20 --baseline-trials 10 [--cases pseudo-ct t1-flair mr-mr]
         [--overlaps 1 0.8 0.6 0.4] [--methods dpcn ...]
@@ -21,6 +21,7 @@ HIGH`` (one band only: :attr:`dpcn_med.solver.SolverConfig.sphere_band` without 
 from __future__ import annotations
 
 import argparse
+import math
 import shutil
 import statistics
 import sys
@@ -34,13 +35,13 @@ import SimpleITK as sitk
 
 from dpcn_med.benchmark import METHODS, SUCCESS_MM, available_methods
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
-from dpcn_med.io import read_csv, write_csv
+from dpcn_med.io import atomic_output, read_csv, write_csv
 from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
 from dpcn_med.register import register
 from dpcn_med.solver import SolverConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, fraction_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -51,6 +52,8 @@ CASES = {
 }
 BASELINES = ["sitk-geometry", "sitk-moments", "sitk-exhaustive", "ants-rigid", "elastix-rigid"]
 """The local tools of ``dpcn-med benchmark``'s quick mode (ANTs' multi-start, 25 s a pair, only on request)."""
+SAME_POSES = "dpcn-baseline-poses"
+"""The method name of dpcn_med's rows restricted to the poses the baselines ran (:func:`on_baseline_poses`)."""
 
 
 def case_images(name: str) -> tuple[sitk.Image, sitk.Image]:
@@ -84,11 +87,30 @@ def slab(image: sitk.Image, fraction: float, rng: np.random.Generator) -> sitk.I
     return sitk.RegionOfInterest(image, size, index)
 
 
+def overlap_type(text: str) -> float:
+    """An argparse type for an overlap: a fraction in (0, 1] in whole percents (the percent seeds the cell's poses)."""
+    value = fraction_type(text)
+    if not math.isclose(100 * value, round(100 * value), abs_tol=1e-6):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole percent; the poses of an overlap are seeded by its "
+                                         "percent, so give one such as 0.55")
+    return value
+
+
+def check_overlaps(parser: argparse.ArgumentParser, overlaps: list[float]) -> None:
+    """Exit through ``parser`` if two of ``overlaps`` are the same percent (the same cell twice)."""
+    percents = [round(100 * overlap) for overlap in overlaps]
+    repeated = sorted({percent for percent in percents if percents.count(percent) > 1})
+    if repeated:
+        parser.error(f"--overlaps: {', '.join(f'{percent}%' for percent in repeated)} given twice")
+
+
 def cell_poses(fixed_whole: sitk.Image, overlap: float, trials: int, seed: int
                ) -> Iterator[tuple[int, sitk.Image, sitk.Similarity3DTransform]]:
     """The poses of one cell, ``(trial, fixed slab, true fixed_to_moving)``, each following from ``seed`` and
     ``overlap`` alone (whatever runs on them)."""
-    rng = np.random.default_rng([seed, int(overlap * 100)])
+    # round, not int: int(0.57 * 100) is 56, so 0.56 and 0.57 would share one stream; both give the same for the
+    # documented 1, 0.8, 0.6 and 0.4, whose poses stay as they were
+    rng = np.random.default_rng([seed, round(overlap * 100)])
     for trial in range(trials):
         fixed = slab(fixed_whole, overlap, rng)
         yield trial, fixed, random_similarity(rng, foreground_box(fixed)[0], max_shift_mm=40.0)
@@ -132,8 +154,23 @@ def run(case: str, overlaps: list[float], trials: int, seed: int, methods: list[
     return rows
 
 
+def on_baseline_poses(rows: list[dict]) -> list[dict]:
+    """dpcn_med's rows on the poses that the baselines ran too (the first ``--baseline-trials`` of each cell),
+    renamed :data:`SAME_POSES`: its results like for like with theirs. None for a case where the baselines ran all
+    of dpcn_med's poses, or none of them."""
+    ran = {(r["case"], r["overlap"], r["trial"]) for r in rows if r["method"] not in ("dpcn", SAME_POSES)}
+    same = []
+    for case in dict.fromkeys(r["case"] for r in rows):
+        dpcn = [r for r in rows if (r["case"], r["method"]) == (case, "dpcn")]
+        shared = [r for r in dpcn if (case, r["overlap"], r["trial"]) in ran]
+        if 0 < len(shared) < len(dpcn):
+            same += [{**r, "method": SAME_POSES, "label": f"{r['label']}, on the baselines' poses"} for r in shared]
+    return same
+
+
 def table(rows: list[dict], labels: dict[str, str]) -> str:
-    """Per case, one line per method: success at each overlap, median TRE and seconds over all its poses."""
+    """Per case, one line per method: success at each overlap (``–`` where the method has no poses at it), median
+    TRE and seconds over all its poses."""
     overlaps = list(dict.fromkeys(r["overlap"] for r in rows))
     lines = []
     for case in dict.fromkeys(r["case"] for r in rows):
@@ -145,8 +182,10 @@ def table(rows: list[dict], labels: dict[str, str]) -> str:
             if not mine:
                 continue
             cells = [[r["tre_mm"] for r in mine if r["overlap"] == o] for o in overlaps]
-            lines.append(f"| {label} | {len(cells[0])} | "
-                         + " | ".join(f"{100 * sum(e < SUCCESS_MM for e in c) / len(c):.0f}%" for c in cells)
+            poses = ", ".join(str(n) for n in dict.fromkeys(len(c) for c in cells if c))
+            lines.append(f"| {label} | {poses} | "
+                         + " | ".join(f"{100 * sum(e < SUCCESS_MM for e in c) / len(c):.0f}%" if c else "–"
+                                      for c in cells)
                          + f" | {statistics.median(r['tre_mm'] for r in mine):.2f}"
                          + f" | {statistics.median(r['seconds'] for r in mine):.1f} |")
         lines.append("")
@@ -155,7 +194,8 @@ def table(rows: list[dict], labels: dict[str, str]) -> str:
 
 def figure(rows: list[dict], labels: dict[str, str], path: Path) -> None:
     """Success against overlap, one panel per case, one line per method (the baselines offset by up to a few
-    points so that equal curves do not hide each other)."""
+    points so that equal curves do not hide each other; dpcn_med on the baselines' poses dashed, in dpcn_med's
+    colour), written atomically."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -165,32 +205,38 @@ def figure(rows: list[dict], labels: dict[str, str], path: Path) -> None:
     figure_, axes = plt.subplots(1, len(cases), figsize=(4.5 * len(cases), 4.2), squeeze=False,
                                  constrained_layout=True)
     markers = "os^vDP*X"
+    # colours, markers and offsets as without the like-for-like line, which borrows dpcn_med's
+    methods = [method for method in labels if method != SAME_POSES]
     for ax, case in zip(axes[0], cases):
-        for index, (method, label) in enumerate(labels.items()):
+        for method, label in labels.items():
             mine = [r for r in rows if (r["case"], r["method"]) == (case, method)]
             overlaps = sorted({r["overlap"] for r in mine})
             success = [100 * statistics.mean(r["tre_mm"] < SUCCESS_MM for r in mine if r["overlap"] == o)
                        for o in overlaps]
-            # equal baselines stay visible side by side; dpcn_med's curve is drawn where it is
-            offset = 0.0 if method == "dpcn" else 1.2 * (index - len(labels) / 2)
+            index = methods.index("dpcn" if method == SAME_POSES else method)
+            # equal baselines stay visible side by side; dpcn_med's curves are drawn where they are
+            offset = 0.0 if method in ("dpcn", SAME_POSES) else 1.2 * (index - len(methods) / 2)
+            style = {"dpcn": {"lw": 2.5}, SAME_POSES: {"lw": 1.5, "ls": "--", "mfc": "none"}}.get(method, {"lw": 1.2})
             ax.plot([100 * o for o in overlaps], [value + offset for value in success], marker=markers[index % 8],
-                    label=label, lw=2.5 if method == "dpcn" else 1.2)
+                    color=f"C{index}", label=label, **style)
         ax.set(title=CASES[case], xlabel="overlap (% of the fixed foreground's extent)",
                ylabel=f"success (TRE < {SUCCESS_MM:g} mm), %", ylim=(-8, 108))
         ax.title.set_fontsize(8)
     figure_.legend(*axes[0][0].get_legend_handles_labels(), loc="outside lower center", ncols=3, fontsize=7)
-    figure_.savefig(path, dpi=110)
+    with atomic_output(path) as temporary:
+        figure_.savefig(temporary, dpi=110)
     plt.close(figure_)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
-    parser.add_argument("--overlaps", nargs="+", type=float, default=[1.0, 0.8, 0.6, 0.4])
-    parser.add_argument("--trials", type=int, default=20)
+    parser.add_argument("--overlaps", nargs="+", type=overlap_type, default=[1.0, 0.8, 0.6, 0.4],
+                        help="shares of the fixed foreground's extent kept, in (0, 1], whole percents")
+    parser.add_argument("--trials", type=count_type(), default=20)
     parser.add_argument("--methods", nargs="+", default=["dpcn", *BASELINES], choices=list(METHODS),
                         help="dpcn_med (with the settings below) and local baselines of dpcn_med.benchmark")
-    parser.add_argument("--baseline-trials", type=int, default=10,
+    parser.add_argument("--baseline-trials", type=count_type(0), default=10,
                         help="the methods other than dpcn run on the first this many poses of each cell")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--bandwidth", type=int, default=32, help="solver bandwidth B (the CLI's default: 32)")
@@ -206,6 +252,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="run nothing: the tables and figure of earlier runs' per-pose CSVs (say, one per case, "
                              "run side by side on separate cores)")
     args = parser.parse_args(argv)
+    check_overlaps(parser, args.overlaps)
     installed = available_methods()
     methods = [m for m in args.methods if m in installed]
     missing = [] if args.combine else [m for m in args.methods if m not in installed]
@@ -220,18 +267,23 @@ def main(argv: list[str] | None = None) -> int:
                 for case in args.cases
                 for row in run(case, args.overlaps, args.trials, args.seed, methods, args.baseline_trials, **settings)]
         write_csv(rows, args.output.with_suffix(".csv"))  # every registration, for --combine
+    same = on_baseline_poses(rows)
+    rows += same
     labels = {row["method"]: row["label"] for row in rows}
-    figure(rows, labels, args.output.with_suffix(".png"))
+    # dpcn_med's row, its row on the baselines' poses, then the others as they ran
+    labels = dict(sorted(labels.items(), key=lambda item: (item[0] != "dpcn", item[0] != SAME_POSES)))
     text = (f"# Partial field of view\n\n{generated_by(__file__, argv)}: a slab of the fixed volume "
             f"along a random voxel axis keeping the given share of its foreground's extent, the moving volume whole "
             f"and moved by a random rigid pose (rotation uniform over SO(3), translation up to 40 mm); "
             f"`dpcn_med.register` with the command line's defaults unless the label says otherwise, the local "
             f"baselines (`dpcn-med benchmark`'s settings) on the first poses of each cell; success is a TRE under "
             f"{SUCCESS_MM:g} mm over the slab foreground's corners; times on a shared CPU."
+            + (" dpcn_med \"on the baselines' poses\": its results on those poses alone." if same else "")
             + (f" Not installed, left out: {', '.join(missing)}." if missing else "")
             + (f" {args.note}" if args.note else "")
             + f"\n\n![success against overlap]({args.output.with_suffix('.png').name})\n\n"
             + table(rows, labels))
+    figure(rows, labels, args.output.with_suffix(".png"))  # after the table: a failing table leaves the figure as was
     return publish(text, args.output)
 
 

@@ -28,7 +28,7 @@ from dpcn_med.preprocess import foreground_box
 from dpcn_med.register import register
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 VOLUMES = {  # key: (table label, file under shared/data)
@@ -80,7 +80,7 @@ def run_case(fixed: sitk.Image, source: sitk.Image, mode: str, trials: int, seed
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=40)
+    parser.add_argument("--trials", type=count_type(), default=40)
     parser.add_argument("--modes", nargs="+", default=["rigid", "similarity"], choices=["rigid", "similarity"])
     parser.add_argument("--cases", nargs="+", default=CASES, choices=CASES)
     parser.add_argument("--output", type=Path, default=Path(__file__).resolve().parents[1] / "docs" / "benchmarks")

@@ -20,13 +20,13 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "mridir"
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(ROOT / "slicer_module" / "DPCNRegistration"))
-from markdown import generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--resolutions", nargs="+", default=["1p0mm", "1p5mm"], help="MRI-DIR file resolutions")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=count_type(), default=3)
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "slicer_time.md")
     args = parser.parse_args(argv)
     try:

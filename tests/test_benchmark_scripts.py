@@ -1,0 +1,245 @@
+"""benchmarks/*.py: a bad count or fraction stops at the command line (exit 2, the option named, nothing written),
+and what the scripts do without registering anything: cli_time's trees and exit codes, solver_speed's worker,
+partial_fov's poses, tables and figure, the other scripts' wording."""
+
+from __future__ import annotations
+
+import csv
+import importlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+import torch
+
+from dpcn_med.evaluation import random_similarity
+from dpcn_med.preprocess import foreground_box
+from tests.test_register import mni_2mm
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))  # as the scripts import each other and their shared helpers
+
+
+def script(name: str) -> ModuleType:
+    """The benchmark script ``benchmarks/NAME.py``, imported."""
+    return importlib.import_module(name)
+
+
+class TestCounts:
+    @pytest.mark.parametrize("name, argv, message", [
+        ("solver_accuracy", ["--poses", "0"], "argument --poses: 0 is too few; give at least 1"),
+        ("learned_accuracy", ["--config", "x.yaml", "--pairs", "1"], "argument --pairs: 1 is too few; give at least 2"),
+        ("learned_speed", ["--steps", "0"], "argument --steps: 0 is too few"),
+        ("learned_speed", ["--batches", "4", "0"], "argument --batches: 0 is too few"),
+        ("register_roundtrip", ["--trials", "0"], "argument --trials: 0 is too few"),
+        ("register_roundtrip", ["--trials", "2.5"], "argument --trials: '2.5' is not a whole number"),
+        ("candidate_cost", ["--repeats", "0"], "argument --repeats: 0 is too few"),
+        ("slicer_time", ["--repeats", "0"], "argument --repeats: 0 is too few"),
+        ("mridir_reference", ["--starts", "0"], "argument --starts: 0 is too few"),
+        ("mridir_reference", ["--rotations", "-1"], "argument --rotations: -1 is too few; give at least 0"),
+        ("partial_fov", ["--trials", "0"], "argument --trials: 0 is too few"),
+        ("partial_fov", ["--baseline-trials", "-1"], "argument --baseline-trials: -1 is too few"),
+        ("failure_signals", ["--trials", "0"], "argument --trials: 0 is too few"),
+        ("cli_time", ["--repeats", "0"], "argument --repeats: 0 is too few"),
+        ("solver_speed", ["--repeats", "0"], "argument --repeats: 0 is too few"),
+        ("solver_speed", ["--devices", "gpu"], "argument --devices: 'gpu' is not a torch device"),
+    ])
+    def test_refused_before_any_work(self, name, argv, message, tmp_path, capsys):
+        output = tmp_path / "table.md"
+        with pytest.raises(SystemExit) as exit_:
+            script(name).main([*argv, "--output", str(output)])
+        assert exit_.value.code == 2
+        assert message in capsys.readouterr().err
+        assert not output.exists()
+
+
+class TestOverlaps:
+    @pytest.mark.parametrize("name", ["partial_fov", "failure_signals"])
+    @pytest.mark.parametrize("overlaps, message", [
+        (["-0.5"], "'-0.5' is not a fraction in (0, 1]"),
+        (["0"], "'0' is not a fraction in (0, 1]"),
+        (["1.5"], "'1.5' is not a fraction in (0, 1]"),
+        (["nan"], "'nan' is not a fraction in (0, 1]"),
+        (["0.565"], "'0.565' is not a whole percent"),
+        (["0.6", "0.4", "0.60"], "--overlaps: 60% given twice"),
+    ])
+    def test_refused_before_any_work(self, name, overlaps, message, tmp_path, capsys):
+        with pytest.raises(SystemExit) as exit_:
+            script(name).main(["--overlaps", *overlaps, "--output", str(tmp_path / "table.md")])
+        assert exit_.value.code == 2
+        assert message in capsys.readouterr().err
+        assert not any(tmp_path.iterdir())
+
+    def test_each_percent_seeds_its_own_poses(self):
+        partial_fov = script("partial_fov")
+        image = mni_2mm()
+        poses = [next(partial_fov.cell_poses(image, overlap, 1, 0))[2] for overlap in (0.56, 0.57)]
+        assert poses[0].GetParameters() != poses[1].GetParameters()  # int(0.57 * 100) is 56: one stream for both
+
+    @pytest.mark.parametrize("overlap", [1.0, 0.8, 0.6, 0.4])
+    def test_documented_overlaps_keep_their_poses(self, overlap):
+        """The overlaps of the committed tables were seeded by ``int(overlap * 100)``: the same slabs and poses."""
+        partial_fov = script("partial_fov")
+        image = mni_2mm()
+        rng = np.random.default_rng([0, int(overlap * 100)])
+        slab = partial_fov.slab(image, overlap, rng)
+        truth = random_similarity(rng, foreground_box(slab)[0], max_shift_mm=40.0)
+        _, found_slab, found = next(partial_fov.cell_poses(image, overlap, 1, 0))
+        assert (found_slab.GetSize(), found_slab.GetOrigin()) == (slab.GetSize(), slab.GetOrigin())
+        assert found.GetParameters() == truth.GetParameters()
+
+
+def _write_rows(path: Path, rows: list[tuple]) -> Path:
+    """A partial_fov CSV of ``(case, overlap, trial, method, tre_mm)`` rows (10 s each)."""
+    labels = {"dpcn": "dpcn_med", "sitk-geometry": "SimpleITK"}
+    with open(path, "w", newline="") as stream:
+        writer = csv.writer(stream)
+        writer.writerow(["case", "overlap", "trial", "method", "tre_mm", "seconds", "label"])
+        writer.writerows([*row, 10.0, labels[row[3]]] for row in rows)
+    return path
+
+
+class TestPartialFovCombine:
+    def test_cases_with_other_overlaps_and_dpcn_on_the_baselines_poses(self, tmp_path):
+        slabs = _write_rows(tmp_path / "pseudo-ct.csv", [
+            *(("pseudo-ct", 1.0, trial, "dpcn", 50.0 if trial == 3 else 0.1) for trial in range(4)),
+            *(("pseudo-ct", 1.0, trial, "sitk-geometry", 100.0) for trial in range(2))])
+        stroke = _write_rows(tmp_path / "t1-flair.csv", [("t1-flair", 0.8, trial, "dpcn", 0.3) for trial in range(2)])
+        output = tmp_path / "out" / "partial_fov.md"
+        assert script("partial_fov").main(["--combine", str(slabs), str(stroke), "--output", str(output)]) == 0
+        lines = output.read_text().splitlines()
+        assert "| dpcn_med | 4 | 75% | – | 0.10 | 10.0 |" in lines
+        assert "| dpcn_med, on the baselines' poses | 2 | 100% | – | 0.10 | 10.0 |" in lines
+        assert "| SimpleITK | 2 | 0% | – | 100.00 | 10.0 |" in lines
+        assert "| dpcn_med | 2 | – | 100% | 0.30 | 10.0 |" in lines
+        assert sum("on the baselines' poses |" in line for line in lines) == 1  # not for a case without baselines
+        assert output.with_suffix(".png").stat().st_size > 0
+        assert sorted(path.name for path in output.parent.iterdir()) == ["partial_fov.md", "partial_fov.png"]
+
+    def test_the_committed_table_is_its_csvs_combined(self, tmp_path):
+        committed = ROOT / "docs" / "benchmarks" / "partial_fov.md"
+        csvs = [str(ROOT / "docs" / "benchmarks" / "partial_fov" / f"{case}.csv")
+                for case in ("pseudo-ct", "t1-flair", "mr-mr")]
+        output = tmp_path / "partial_fov.md"
+        assert script("partial_fov").main(["--combine", *csvs, "--output", str(output)]) == 0
+
+        def tables(path: Path) -> str:
+            return path.read_text().split("![success against overlap](partial_fov.png)")[1]
+
+        assert tables(output) == tables(committed)
+
+
+FAKE_REGISTER = """import json, pathlib, sys
+output = pathlib.Path(sys.argv[sys.argv.index("-o") + 1])
+output.mkdir()
+(output / "report.json").write_text(json.dumps({"timings_s": {"total": TOTAL}}))
+raise SystemExit(3)  # low confidence: the result is written all the same
+"""
+
+
+def _fake_tree(folder: Path, total: float) -> Path:
+    """A source tree whose `python -m dpcn_med register` writes a report with ``total`` seconds and exits 3."""
+    (folder / "dpcn_med").mkdir(parents=True)
+    (folder / "dpcn_med" / "__init__.py").write_text("")
+    (folder / "dpcn_med" / "__main__.py").write_text(FAKE_REGISTER.replace("TOTAL", str(total)))
+    return folder
+
+
+class TestCliTime:
+    def test_a_relative_compared_tree_and_exit_code_3(self, tmp_path, monkeypatch):
+        cli_time = script("cli_time")
+        monkeypatch.setattr(cli_time, "ROOT", _fake_tree(tmp_path / "main", 1.0))
+        old = _fake_tree(tmp_path / "old", 2.0)
+        monkeypatch.chdir(tmp_path)
+        for name in ("fixed.nii.gz", "moving.nii.gz"):
+            (tmp_path / name).write_bytes(b"")
+        output = tmp_path / "cli_time.md"
+        assert cli_time.main(["--compare", "old", "--pair", "fixed.nii.gz", "moving.nii.gz", "--repeats", "1",
+                              "--variants", "no-refine", "--output", str(output)]) == 0
+        rows = [line.strip("|").split(" | ") for line in output.read_text().splitlines() if "| no-refine |" in line]
+        totals = {cells[0].strip(): cells[9].strip() for cells in rows}
+        assert totals == {str(tmp_path / "main"): "1.00", str(old.resolve()): "2.00"}
+
+
+def _speed_row(device: str, bandwidth: int) -> dict:
+    return {"device": device, "bandwidth": bandwidth, "size": 2 * bandwidth, "repeats": 1, "cold": 1.0,
+            "stages": {"solve": 0.5}, "median": 0.5, "min": 0.5, "max": 0.5, "baseline": 0.01, "peak_mib": 1.0,
+            "peak_kind": "CUDA allocated"}
+
+
+class TestSolverSpeed:
+    def test_a_device_with_an_index_and_the_command_in_the_table(self, tmp_path, monkeypatch):
+        solver_speed = script("solver_speed")
+        asked = []
+
+        def run(command, **options):
+            asked.append(command[3:5])
+            row = _speed_row(command[3], int(command[4]))
+            return subprocess.CompletedProcess(command, 0, stdout=f"{json.dumps(row)}\n")
+
+        monkeypatch.setattr(solver_speed.subprocess, "run", run)
+        output = tmp_path / "solver_speed.md"
+        argv = ["--devices", "cuda:0", "--repeats", "1", "--output", str(output)]
+        assert solver_speed.main(argv) == 0
+        assert asked == [["cuda:0", "64"], ["cuda:0", "128"]]  # CUDA's default bandwidths
+        assert f"Generated by `python benchmarks/solver_speed.py --devices cuda:0 --repeats 1 --output {output}`" \
+            in output.read_text()
+
+    @pytest.mark.skipif(torch.cuda.is_available(), reason="the CUDA worker fails only where there is no CUDA")
+    def test_a_failing_workers_error_is_shown(self, tmp_path, capfd):
+        output = tmp_path / "solver_speed.md"
+        argv = ["--devices", "cuda", "--bandwidths", "16", "--repeats", "1", "--output", str(output)]
+        assert script("solver_speed").main(argv) == 1
+        error = capfd.readouterr().err
+        assert "Traceback" in error  # the worker's own
+        assert "the worker for cuda B=16 failed with exit code 1 (its error is above); nothing written" in error
+        assert not output.exists()
+
+
+class TestWording:
+    def test_solver_accuracy_names_its_whole_command(self, tmp_path, monkeypatch):
+        solver_accuracy = script("solver_accuracy")
+        monkeypatch.setattr(solver_accuracy, "_image", lambda name: None)  # every volume absent: no registration
+        output = tmp_path / "solver_accuracy.md"
+        try:
+            assert solver_accuracy.main(["--poses", "1", "--bandwidths", "32", "--output", str(output)]) == 0
+        finally:
+            torch.set_grad_enabled(True)  # the script turns gradients off for its process
+        assert (f"Generated by `python benchmarks/solver_accuracy.py --poses 1 --bandwidths 32 --output {output}`"
+                in output.read_text())
+
+    def test_candidate_cost_help_has_its_whole_first_sentence(self, capsys):
+        with pytest.raises(SystemExit) as exit_:
+            script("candidate_cost").main(["--help"])
+        assert exit_.value.code == 0
+        assert "no stored-pose start), side by side." in " ".join(capsys.readouterr().out.split())
+
+    @pytest.mark.parametrize("starts, text", [
+        (1, "1 starting rotation (the first of the cube's 24)"),
+        (2, "2 starting rotations (the first 2 of the cube's 24)"),
+        (24, "24 starting rotations (the cube's 24)"),
+        (25, "25 starting rotations (the cube's 24 and 1 seeded uniform one)"),
+        (96, "96 starting rotations (the cube's 24 and 72 seeded uniform ones)"),
+    ])
+    def test_mridir_reference_starts_by_their_count(self, starts, text):
+        assert script("mridir_reference").starts_text(starts) == text
+
+
+class TestFailureSignals:
+    def test_a_new_output_folder_is_made_before_the_work(self, tmp_path, monkeypatch):
+        failure_signals = script("failure_signals")
+        output = tmp_path / "new" / "failure_signals.md"
+
+        def run(case: str, overlaps: list[float], trials: int, seed: int) -> list[dict]:
+            assert output.parent.is_dir()
+            return [{"case": case, "overlap_fraction": 0.6, "trial": trial, "tre_mm": tre, "start": "candidate 0",
+                     "confidence": confidence, "overlap": 1.0, "mattes_mi": -1.0, "nmi": 1.2, "runner_up_gap": 0.1}
+                    for trial, (tre, confidence) in enumerate([(0.1, 0.5), (50.0, 0.001)])]
+
+        monkeypatch.setattr(failure_signals, "run", run)
+        assert failure_signals.main(["--cases", "mr-mr", "--trials", "2", "--output", str(output)]) == 0
+        assert output.is_file() and output.with_suffix(".csv").is_file()
