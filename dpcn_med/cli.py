@@ -247,7 +247,7 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
                       fixed_modality=args.fixed_modality, moving_modality=args.moving_modality,
                       resample=args.resampled, progress=_Progress(args.quiet, args.verbose, label,
                                                                   args.progress == "json"))
-    low = result.confidence < args.min_confidence
+    low = not result.confidence >= args.min_confidence  # NaN is never confident
     report = registration_report(result, fixed=fixed, moving=moving, fixed_mask=fixed_mask, moving_mask=moving_mask,
                                  min_confidence=args.min_confidence, outputs=list(outputs))
     report["timings_s"]["total"] = time.perf_counter() - started
@@ -433,7 +433,7 @@ def _register_batch(args: argparse.Namespace) -> int:
     for index, (pair, (report, replaced)) in enumerate(zip(pairs, earlier), start=1):
         label = f"[{index}/{len(pairs)}] {pair['id']} "
         if report is not None:
-            low = report["confidence"] < args.min_confidence
+            low = not report["confidence"] >= args.min_confidence  # NaN is never confident
             rows.append({"id": pair["id"], "status": "done earlier" + (", low confidence" if low else ""),
                          "confidence": f"{report['confidence']:.4f}",
                          "rotation_deg": f"{report['final']['rotation_degrees']:.1f}",

@@ -975,6 +975,25 @@ def read_tensor_metadata(path: str | os.PathLike) -> dict[str, str]:
         raise InputError(f"{name}: not a readable .safetensors file ({error})") from None
 
 
+def read_tensor_shapes(path: str | os.PathLike) -> dict[str, tuple[int, ...]]:
+    """The shape of each tensor of a ``.safetensors`` file, from its header (no tensor is read).
+
+    Raises:
+        InputNotFoundError: the file is missing.
+        InputError: not readable as safetensors.
+    """
+    from safetensors import SafetensorError, safe_open
+
+    name = os.fspath(path)
+    if not os.path.isfile(name):
+        raise InputNotFoundError(f"{name}: not found (no such file); check the path")
+    try:
+        with safe_open(name, framework="pt") as handle:
+            return {key: tuple(handle.get_slice(key).get_shape()) for key in handle.keys()}
+    except (SafetensorError, OSError, ValueError) as error:
+        raise InputError(f"{name}: not a readable .safetensors file ({error})") from None
+
+
 def read_text(path: str | os.PathLike, *, encoding: str = "utf-8") -> str:
     """The content of a text file (``latin-1`` decodes any bytes, for formats whose encoding is not stated).
 
@@ -1005,7 +1024,8 @@ def read_json(path: str | os.PathLike) -> Any:
 
     Raises:
         InputNotFoundError: the file is missing.
-        InputError: not UTF-8 JSON.
+        InputError: not UTF-8 JSON, or JSON that Python cannot hold (nested too deeply, an integer of more digits
+            than Python converts).
     """
     name = _existing_file(path)
     try:
@@ -1013,6 +1033,10 @@ def read_json(path: str | os.PathLike) -> Any:
             return json.load(stream)
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise InputError(f"{name}: not a JSON file ({error})") from None
+    except RecursionError:
+        raise InputError(f"{name}: JSON nested too deeply to read (beyond Python's recursion limit)") from None
+    except ValueError as error:  # the limit on the digits of an integer (Python >= 3.11)
+        raise InputError(f"{name}: unreadable JSON ({error})") from None
 
 
 # ----------------------------------------------------------------------------------------------------------- meshes

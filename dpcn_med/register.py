@@ -436,6 +436,9 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         for source, mask, role in ((fixed_mask, fixed_mask_image, "fixed mask"),
                                    (moving_mask, moving_mask_image, "moving mask")):
             _check_mask_extent(mask, _mask_name(source, role), refinement)
+    if network is not None:
+        _check_model_modalities(model, network, (fixed_modality, moving_modality),
+                                (fixed_prepared.modality, moving_prepared.modality))
     fixed_grid, moving_grid = pair_grids(fixed_prepared, moving_prepared, size, preprocessing)
     fixed_tensor = to_tensor(resample_to_grid(fixed_prepared.image, fixed_grid)).to(torch_device)
     moving_tensor = to_tensor(resample_to_grid(moving_prepared.image, moving_grid)).to(torch_device)
@@ -451,9 +454,15 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         alternatives = solution.alternatives
     else:
         with torch.no_grad():
-            solution = network(fixed_tensor, moving_tensor, mode=mode, alternatives=runner_ups)
+            try:
+                solution = network(fixed_tensor, moving_tensor, mode=mode, alternatives=runner_ups)
+            except InputError as error:  # features that overflow: the model's fault, not the images'
+                raise InputError(f"{model}: {error}") from None
         alternatives = solution.stage.alternatives
     timings["solve"] = time.perf_counter() - start
+    if not all(torch.isfinite(value[0]).all() for value in (solution.rotation, solution.scale, solution.translation,
+                                                            solution.confidence)):
+        raise _non_finite(model if network is not None else None)
     candidates = [(physical_transform(solution.rotation[0], float(solution.scale[0]) if mode == "similarity" else None,
                                       solution.translation[0], fixed_grid, moving_grid),
                    float(solution.confidence[0]))]
@@ -503,7 +512,12 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         timings["resample"] = time.perf_counter() - start
     confidence = candidates[chosen][1]
     if chosen == stored:
-        confidence = stored_pose_confidence(fixed_tensor, moving_tensor, network, solver)
+        try:
+            confidence = stored_pose_confidence(fixed_tensor, moving_tensor, network, solver)
+        except InputError as error:
+            raise InputError(f"{model}: {error}") from None
+    if not math.isfinite(confidence):
+        raise _non_finite(model if network is not None else None)
     report("done", 1.0)
     return RegistrationResult(
         fixed_to_moving=final, moving_to_fixed=final.GetInverse(), dpc_transform=candidates[chosen][0],
@@ -514,6 +528,33 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         refined=refined, overlap=overlap, timings=timings, device=str(torch_device),
         model="learning-free" if network is None else os.fspath(model), fixed_image=fixed_image,
         moving_image=moving_image, resampled=resampled)
+
+
+def _check_model_modalities(model: str | os.PathLike, network: DPCN, given: tuple[str, str],
+                            used: tuple[str, str]) -> None:
+    """Refuse inputs of other modalities than the ``(fixed, moving)`` ones the model was trained for.
+
+    ``used`` are the modalities :func:`dpcn_med.preprocess.prepare` resolved from ``given``. Detection (``"auto"``)
+    answers ``ct`` only for Hounsfield units and ``mr`` for anything else: it cannot tell ultrasound from MR, nor a CT
+    stored without its air at -1000, so a detected ``mr`` is not held against the model; a detected ``ct`` and a
+    named modality are.
+    """
+    trained = tuple(network.config.modalities)
+    if any(resolved != expected and (named != "auto" or resolved == "ct")
+           for named, resolved, expected in zip(given, used, trained)):
+        raise InputError(f"{model}: this model was trained for {trained[0]} (fixed) and {trained[1]} (moving); the "
+                         f"inputs are {used[0]} and {used[1]} (fixed_modality {given[0]!r}, moving_modality "
+                         f"{given[1]!r}); use a model trained for these modalities, or name them if detection "
+                         "misjudged them (--fixed-modality, --moving-modality)")
+
+
+def _non_finite(model: str | os.PathLike | None) -> InputError:
+    """The error for a pose or confidence holding NaN or Inf (a softmax at a temperature of 0, overflowing
+    features): a registration that reports it would be silently wrong."""
+    if model is None:
+        return InputError("the solver produced a non-finite pose or confidence (NaN or Inf) from these images")
+    return InputError(f"{model}: the solver produced a non-finite pose or confidence (NaN or Inf) with this model; "
+                      "its weights are unusable")
 
 
 def stored_pose_confidence(fixed: torch.Tensor, moving: torch.Tensor, network: DPCN | None,

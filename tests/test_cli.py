@@ -330,6 +330,20 @@ def _write_dicom_series(folder: Path, series_uid: str, offset: int) -> None:
 
 
 class TestLowConfidence:
+    # Before: `confidence < min_confidence` is False for NaN, so a NaN confidence exited 0.
+    def test_a_nan_confidence_is_never_confident(self, pair, tmp_path, monkeypatch, capsys):
+        from dataclasses import replace
+
+        import dpcn_med.register  # noqa: F401  (the package exports the function under the module's name)
+
+        module = sys.modules["dpcn_med.register"]
+        real = module.register
+        monkeypatch.setattr(module, "register",
+                            lambda *args, **kwargs: replace(real(*args, **kwargs), confidence=float("nan")))
+        code = main(["register", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "o"), "--no-refine",
+                     "--no-overview"])
+        assert code == 3 and "below" in capsys.readouterr().err
+
     def test_unrelated_volumes_exit_3_with_outputs(self, pair, tmp_path, capsys):
         rng = np.random.default_rng(0)
         noise = sitk.GetImageFromArray((rng.random((40, 48, 36)) * 100).astype(np.float32))

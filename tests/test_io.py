@@ -997,6 +997,15 @@ class TestReadJson:
         with pytest.raises(InputNotFoundError, match=r"c\.json: not found"):
             io.read_json(tmp_path / "c.json")
 
+    # Before: RecursionError and a ValueError of Python's limit on integer digits, as internal errors.
+    def test_json_python_cannot_hold_is_refused(self, tmp_path):
+        (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+        with pytest.raises(InputError, match=r"deep\.json: JSON nested too deeply to read"):
+            io.read_json(tmp_path / "deep.json")
+        (tmp_path / "digits.json").write_text('{"bandwidth": ' + "1" * 5000 + "}")
+        with pytest.raises(InputError, match=r"digits\.json: unreadable JSON \(Exceeds the limit"):
+            io.read_json(tmp_path / "digits.json")
+
 
 class TestReadText:
     def test_reads_and_names_the_problem(self, tmp_path):

@@ -76,6 +76,31 @@ class TestModelConfig:
         with pytest.raises(InputError, match="unknown keys \\['learning_rate'\\]"):
             ModelConfig.from_json({**TINY.to_json(), "learning_rate": 0.1})
 
+    # Before: {} loaded as a bandwidth-32 model whatever the weights were.
+    @pytest.mark.parametrize("key", ["bandwidth", "channels", "residual_units", "modalities", "share_weights", "mode",
+                                     "preprocessing"])
+    def test_keys_that_define_the_model_are_required(self, key):
+        with pytest.raises(InputError, match=f"model config lacks \\['{key}'\\]; a saved model must state"):
+            ModelConfig.from_json({k: v for k, v in TINY.to_json().items() if k != key})
+
+    # Before: a JSON list raised AttributeError ('tuple' object has no attribute 'items'), "no" shared weights, and
+    # channels of 10^6 built gigabytes of UNet.
+    @pytest.mark.parametrize(("options", "message"), [
+        ({"preprocessing": []}, r"preprocessing is \(\) \(tuple\); expected a mapping of Preprocessing settings"),
+        ({"solver": [1]}, r"solver is \(1,\) \(tuple\); expected a mapping of SolverConfig settings"),
+        ({"solver": None}, r"solver is None \(NoneType\); expected a mapping of SolverConfig settings"),
+        ({"share_weights": "no"}, r"share_weights is 'no' \(str\); expected True or False"),
+        ({"version": 7}, r"version is 7 \(int\); expected a string"),
+        ({"channels": [4, 8, 10 ** 6]}, r"channels \(4, 8, 1000000\): expected positive integers <= 1024"),
+        ({"channels": [True, True]}, r"channels \(True, True\): expected positive integers"),
+        ({"residual_units": 10 ** 7}, r"residual_units is 10000000; expected an integer >= 0 and <= 8"),
+        ({"solver": {"peaks": 10 ** 9}}, r"peaks is 1000000000; expected an integer >= 1 and <= 64"),
+    ], ids=["preprocessing-list", "solver-list", "solver-null", "share-string", "version-int", "channels-huge",
+            "channels-bool", "residual-huge", "peaks-huge"])
+    def test_unusable_json_values_refused(self, options, message):
+        with pytest.raises(InputError, match=message):
+            ModelConfig.from_json({**TINY.to_json(), **options})
+
 
 class TestFeatureExtractor:
     def test_starts_as_the_identity_and_keeps_the_shape(self):
@@ -119,6 +144,15 @@ class TestDPCN:
         model = DPCN(ModelConfig(**{**TINY.to_json(), "share_weights": True, "channels": (4, 8, 16)}))
         assert model.rotation_moving is model.rotation_fixed and model.translation_moving is model.translation_fixed
         assert sum(p.numel() for p in model.parameters()) < sum(p.numel() for p in DPCN(TINY).parameters())
+
+    # Before: a gain of 3e38 overflowed the features to Inf, which the solver turned into a NaN rotation.
+    def test_features_that_overflow_refused(self):
+        model = DPCN(TINY).eval()
+        with torch.no_grad():
+            model.rotation_fixed.gain.fill_(3e38)
+        fixed, moving, _ = pairs(16, 1, seed=3)
+        with torch.no_grad(), pytest.raises(InputError, match="the rotation_fixed features hold NaN or Inf values"):
+            model(fixed, moving)
 
     def test_wrong_grid_refused(self):
         with pytest.raises(InputError, match="this model takes \\(B, 1, 16, 16, 16\\) pairs"):
@@ -221,6 +255,52 @@ class TestWeights:
                   metadata={"format": "dpcn_med.model/1"})
         with pytest.raises(InputError, match=f"a\\.safetensors: tensor [\\w.]+ {message}"):
             load_model(tmp_path / "a")
+
+    # Before: 1e300 in float64 passed the check and became Inf in the float32 model.
+    def test_float64_weights_are_checked_as_float32(self, tmp_path):
+        from safetensors.torch import load_file, save_file
+
+        weights, _ = save_model(DPCN(TINY), tmp_path / "a")
+        tensors = load_file(str(weights))
+        tensors["rotation_fixed.gain"] = torch.tensor(1e300, dtype=torch.float64)
+        save_file(tensors, str(weights), metadata={"format": "dpcn_med.model/1"})
+        with pytest.raises(InputError, match=r"a\.safetensors: tensor rotation_fixed\.gain holds NaN or Inf values "
+                                             r"\(as float32\)"):
+            load_model(tmp_path / "a")
+
+    # Before: softplus(-200) is 0 in float32, and the model registered ~200 mm off with confidence NaN, exit 0.
+    def test_zero_learned_temperature_refused(self, tmp_path):
+        model = DPCN(TINY)
+        with torch.no_grad():
+            model.temperatures.raw["translation"].fill_(-200.0)
+        save_model(model, tmp_path / "a")
+        with pytest.raises(InputError, match=r"a\.safetensors: the learned translation temperature is 0\.0 "
+                                             r"\(softplus of temperatures\.raw\.translation\); expected a finite "
+                                             r"number > 0"):
+            load_model(tmp_path / "a")
+
+    # Before: weights and config of different trainings loaded silently when their shapes agreed.
+    def test_weights_of_another_config_refused(self, tmp_path):
+        from safetensors.torch import load_file, save_file
+
+        save_model(DPCN(TINY), tmp_path / "a")
+        save_model(DPCN(ModelConfig(**{**TINY.to_json(), "preprocessing": {"fill": 0.6}})), tmp_path / "b")
+        (tmp_path / "b.safetensors").replace(tmp_path / "a.safetensors")
+        with pytest.raises(InputError, match=r"a\.safetensors: saved with another config than \S+a\.json"):
+            load_model(tmp_path / "a")
+        # Weights written before the hash existed load as before; a later format is refused.
+        weights = tmp_path / "a.safetensors"
+        tensors = load_file(str(weights))
+        save_file(tensors, str(weights), metadata={"format": "dpcn_med.model/1"})
+        assert load_model(tmp_path / "a").config.grid_preprocessing().fill == 0.5
+        save_file(tensors, str(weights), metadata={"format": "dpcn_med.model/2"})
+        with pytest.raises(InputError, match=r"a\.safetensors: weights of format 'dpcn_med\.model/2'; this version"):
+            load_model(tmp_path / "a")
+
+    # Before: OSError (File name too long) from Path.exists, an internal error.
+    def test_a_name_the_file_system_refuses(self, tmp_path):
+        with pytest.raises(InputError, match=r"x{300}: not a usable model path \(File name too long\)"):
+            load_model(tmp_path / ("x" * 300))
 
     def test_paths(self):
         assert [p.name for p in model_paths("dir/model.v2.json")] == ["model.v2.safetensors", "model.v2.json"]

@@ -278,6 +278,38 @@ class TestLearnedModel:
         assert chosen == pytest.approx(plain)
 
 
+    # Before: a CT -> MR model registered two ultrasound volumes, exit 0.
+    def test_inputs_of_other_modalities_refused(self, tmp_path):
+        save_model(DPCN(ModelConfig(bandwidth=16, channels=(4, 8, 16), residual_units=0)), tmp_path / "ct_mr")
+        with pytest.raises(InputError, match=r"ct_mr: this model was trained for ct \(fixed\) and mr \(moving\); "
+                                             r"the inputs are us and us \(fixed_modality 'us', moving_modality 'us'\)"):
+            register(mni_2mm(), mni_2mm(), model=tmp_path / "ct_mr", bandwidth=16, refine=False,
+                     fixed_modality="us", moving_modality="us")
+
+    # Before: finite weights whose features overflow were reported as "fixed contains NaN or Inf values" or gave a
+    # NaN rotation.
+    def test_features_that_overflow_name_the_model(self, tmp_path):
+        model = DPCN(ModelConfig(bandwidth=16, channels=(4, 8, 16), residual_units=0))
+        with torch.no_grad():
+            model.translation_moving.gain.fill_(3e38)
+        save_model(model, tmp_path / "overflow")
+        with pytest.raises(InputError, match=r"overflow: the translation_moving features hold NaN or Inf values"):
+            register(mni_2mm(), mni_2mm(), model=tmp_path / "overflow", bandwidth=16, refine=False)
+
+    # Before: a NaN pose or confidence went on to the report, exit 0.
+    def test_a_non_finite_solution_is_refused(self, monkeypatch):
+        from dataclasses import replace
+
+        import dpcn_med.register  # noqa: F401  (the package exports the function under the module's name)
+
+        module = sys.modules["dpcn_med.register"]
+        real = module.solve
+        monkeypatch.setattr(module, "solve", lambda *args, **kwargs: replace(
+            real(*args, **kwargs), confidence=torch.tensor([float("nan")])))
+        with pytest.raises(InputError, match=r"^the solver produced a non-finite pose or confidence \(NaN or Inf\)"):
+            register(mni_2mm(), mni_2mm(), bandwidth=16, refine=False)
+
+
 class TestSecondSphereBand:
     @pytest.mark.shared_data
     def test_a_slab_that_the_first_band_alone_misses(self):

@@ -9,13 +9,14 @@ networks learn on well-compensated pairs from the first step; the estimate at in
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields, replace
 
 import torch
 from torch import Tensor, nn
 
 from dpcn_med import __version__
-from dpcn_med.arguments import check_real, check_sequence
+from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequence, shown
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import axis_angle_to_matrix, warp
 from dpcn_med.models.features import FeatureExtractor
@@ -28,6 +29,14 @@ from dpcn_med.solver.validation import MAX_BANDWIDTH, check_bandwidth, check_mod
 MODALITIES = ("ct", "mr", "us")
 PER_CALL_SOLVER_FIELDS = ("bandwidth", "refine", "alternatives", "profile")
 """:class:`SolverConfig` fields a model does not record: the bandwidth is the model's own, the rest each call sets."""
+REQUIRED_KEYS = ("bandwidth", "channels", "residual_units", "modalities", "share_weights", "mode", "preprocessing")
+"""Keys a saved model config must hold: they define the network and its grids, so a default would describe another
+model than the weights (``solver`` may be absent: a config saved before it existed gets today's defaults)."""
+MAX_CHANNELS = 1024
+"""Most channels of a UNet level: the shipped configs use up to 128; a 3-D convolution between two levels of 1024
+already holds 28 M weights, and a typo of a few more digits built gigabytes before the weights were looked at."""
+MAX_RESIDUAL_UNITS = 8
+"""Most residual units per level (the shipped configs use 1), for the same reason."""
 
 
 def _tuples(value):
@@ -35,9 +44,17 @@ def _tuples(value):
     return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
 
 
+def _mapping(cls: type, values: object, name: str) -> Mapping:
+    """``values`` if it is a mapping (of ``cls``'s fields, the message says; a JSON list arrives as a tuple)."""
+    if not isinstance(values, Mapping):
+        raise InputError(f"{name} is {shown(values)}; expected a mapping of {cls.__name__} settings (a JSON object)")
+    return values
+
+
 def _settings(cls: type, values: dict, name: str):
-    """``cls(**values)``; unknown keys are refused, the message naming the config key ``name``."""
-    unknown = set(values) - {f.name for f in fields(cls)}
+    """``cls(**values)``; a value that is not a mapping, or unknown keys, are refused, the message naming the config
+    key ``name``."""
+    unknown = set(_mapping(cls, values, name)) - {f.name for f in fields(cls)}
     if unknown:
         raise InputError(f"{name} has unknown keys {sorted(unknown)}")
     return cls(**{k: _tuples(v) for k, v in values.items()})
@@ -89,10 +106,12 @@ class ModelConfig:
     def __post_init__(self) -> None:
         check_bandwidth(self.bandwidth, 2 * MAX_BANDWIDTH)
         check_mode(self.mode)
-        if not all(isinstance(c, int) and c >= 1 for c in self.channels):
-            raise InputError(f"channels {self.channels!r}: expected positive integers")
-        if self.residual_units < 0:
-            raise InputError(f"residual_units is {self.residual_units}; expected 0 or more")
+        if not all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= MAX_CHANNELS for c in self.channels):
+            raise InputError(f"channels {self.channels!r}: expected positive integers <= {MAX_CHANNELS}")
+        check_integer("residual_units", self.residual_units, minimum=0, maximum=MAX_RESIDUAL_UNITS)
+        check_flag("share_weights", self.share_weights)
+        if not isinstance(self.version, str):
+            raise InputError(f"version is {shown(self.version)}; expected a string (the dpcn_med version)")
         if any(m not in MODALITIES for m in self.modalities) or len(self.modalities) != 2:
             raise InputError(f"modalities {self.modalities!r}: expected two of {', '.join(MODALITIES)}")
         downsampling = 2 ** (len(self.channels) - 1)
@@ -117,7 +136,7 @@ class ModelConfig:
     def solver_config(self) -> SolverConfig:
         """:attr:`solver` as a :class:`dpcn_med.solver.SolverConfig` at the model's bandwidth (missing fields at
         their defaults)."""
-        per_call = sorted(set(self.solver) & set(PER_CALL_SOLVER_FIELDS))
+        per_call = sorted(set(_mapping(SolverConfig, self.solver, "solver")) & set(PER_CALL_SOLVER_FIELDS))
         if per_call:
             raise InputError(f"solver sets {per_call}: a model does not record {', '.join(PER_CALL_SOLVER_FIELDS)} "
                              "(the bandwidth is the model's own, the rest each call sets)")
@@ -129,7 +148,11 @@ class ModelConfig:
 
     @classmethod
     def from_json(cls, values: dict) -> ModelConfig:
-        """Inverse of :meth:`to_json`; unknown keys are refused (a file from another program or version)."""
+        """Inverse of :meth:`to_json`; unknown keys are refused (a file from another program or version), and so
+        are missing :data:`REQUIRED_KEYS`."""
+        missing = [key for key in REQUIRED_KEYS if key not in values]
+        if missing:
+            raise InputError(f"model config lacks {missing}; a saved model must state {', '.join(REQUIRED_KEYS)}")
         return _settings(cls, values, "model config")
 
 
@@ -198,8 +221,8 @@ class DPCN(nn.Module):
         temperatures = self.temperatures()
         refine = not self.training
         mode = check_mode(mode or self.config.mode)
-        stage = solve(self.rotation_fixed(fixed), self.rotation_moving(moving), mode, config=self.solver,
-                      temperatures=temperatures, refine=refine, alternatives=alternatives)
+        stage = solve(self._features("rotation_fixed", fixed), self._features("rotation_moving", moving), mode,
+                      config=self.solver, temperatures=temperatures, refine=refine, alternatives=alternatives)
         if self.training and target is not None:
             compensation = self._noisy(target, generator, rigid=mode == "rigid").to(fixed.dtype)
         else:
@@ -217,9 +240,23 @@ class DPCN(nn.Module):
         arg-max is refined in eval mode, a soft arg-max in training mode; ``temperature`` defaults to the learned
         one."""
         temperature = self.temperatures().translation if temperature is None else temperature
-        return phase_translation(self.translation_fixed(fixed)[:, 0], self.translation_moving(moving)[:, 0],
-                                 temperature, dim=3, taper=self.solver.taper, refine=not self.training,
-                                 upsample=self.solver.upsample)
+        return phase_translation(self._features("translation_fixed", fixed)[:, 0],
+                                 self._features("translation_moving", moving)[:, 0], temperature, dim=3,
+                                 taper=self.solver.taper, refine=not self.training, upsample=self.solver.upsample)
+
+    def _features(self, extractor: str, volume: Tensor) -> Tensor:
+        """``(B, 1, N, N, N)`` features of ``volume`` by the extractor named ``extractor``.
+
+        Raises:
+            InputError: in eval mode, features holding NaN or Inf (finite weights can overflow float32, e.g. a gain of
+                3e38); the solver would otherwise return a NaN pose, or blame the image. Training skips the check,
+                which would synchronise a GPU on every step.
+        """
+        features = getattr(self, extractor)(volume)
+        if not self.training and not torch.isfinite(features).all():
+            raise InputError(f"the {extractor} features hold NaN or Inf values (the weights overflow float32 on "
+                             "this input); the model is unusable")
+        return features
 
     def _noisy(self, target: PoseTarget, generator: torch.Generator | None, rigid: bool) -> Tensor:
         """``(B, 3, 3)``: the true ``scale * rotation``, turned and scaled a little at random."""

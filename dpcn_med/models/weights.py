@@ -6,6 +6,9 @@ Never pickle: ``torch.load`` of a downloaded file can run arbitrary code, so a m
 
 from __future__ import annotations
 
+import hashlib
+import json
+import math
 import os
 from pathlib import Path
 
@@ -17,7 +20,10 @@ from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.models.dpcn import DPCN, ModelConfig
 
 FORMAT = "dpcn_med.model/1"
-"""The JSON's ``format`` key: what wrote it and how."""
+"""The JSON's ``format`` key and the weights' ``format`` metadata: what wrote them and how."""
+CONFIG_HASH = "config_sha256"
+"""The weights' metadata key holding :func:`config_hash` of the config they were saved with (absent in files written
+before it existed, which load as before)."""
 
 
 def model_paths(path: str | os.PathLike) -> tuple[Path, Path]:
@@ -38,6 +44,13 @@ def model_paths(path: str | os.PathLike) -> tuple[Path, Path]:
     return stem.with_name(stem.name + ".safetensors"), stem.with_name(stem.name + ".json")
 
 
+def config_hash(settings: dict) -> str:
+    """SHA-256 of the model's settings (the JSON's ``config``) in a canonical JSON text (sorted keys, no spaces):
+    the same for the saved dict and for the one read back, whatever the file's layout."""
+    text = json.dumps(settings, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
 def unique_state(model: torch.nn.Module) -> dict[str, torch.Tensor]:
     """The state dict with each tensor once: shared extractors would otherwise appear under two names."""
     tensors, seen = {}, set()
@@ -55,8 +68,9 @@ def save_model(model: DPCN, path: str | os.PathLike, *, record: dict | None = No
         The two paths.
     """
     weights, config = model_paths(path)
-    io.write_tensors(unique_state(model), weights, metadata={"format": FORMAT})
-    io.write_json({"format": FORMAT, "config": model.config.to_json(), "record": record or {}}, config)
+    settings = model.config.to_json()
+    io.write_tensors(unique_state(model), weights, metadata={"format": FORMAT, CONFIG_HASH: config_hash(settings)})
+    io.write_json({"format": FORMAT, "config": settings, "record": record or {}}, config)
     return weights, config
 
 
@@ -65,14 +79,20 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
 
     Raises:
         InputNotFoundError: either file is missing.
-        InputError: not a model path (:func:`model_paths`), a pickled checkpoint, a config from something else or
-            with unusable values, weights that do not fit the config, integer weights where floats belong, or
-            weights holding NaN or Inf.
+        InputError: not a model path (:func:`model_paths`) or one the file system refuses (a name too long), a
+            pickled checkpoint, a config from something else, lacking a key that defines the model or with unusable
+            values, weights of another format or saved with another config, weights that do not fit the config,
+            integer weights where floats belong, weights holding NaN or Inf (as stored or as float32), or learned
+            temperatures that are not finite and positive.
     """
     weights, config = model_paths(path)
     if os.fspath(path).lower().endswith(io.PICKLE_SUFFIXES):
         io.read_tensors(path)  # raises its message about pickles
-    if not weights.exists() and not config.exists():  # the name is wrong, not one file of the pair lost
+    try:
+        neither = not weights.exists() and not config.exists()
+    except OSError as error:  # Path.exists raises for a name too long (ENAMETOOLONG), on Python 3.11 at least
+        raise InputError(f"{os.fspath(path)}: not a usable model path ({error.strerror or error})") from None
+    if neither:  # the name is wrong, not one file of the pair lost
         raise InputNotFoundError(f"{os.fspath(path)}: no such model (neither {weights.name} nor {config.name} "
                                  f"exists in {weights.parent}); check the path")
     description = io.read_json(config)
@@ -85,24 +105,53 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
         raise InputError(f"{config}: 'config' is a {type(settings).__name__}, expected a mapping of the model's "
                          "settings")
     try:
-        model = DPCN(ModelConfig.from_json(settings))
+        model_config = ModelConfig.from_json(settings)
     except InputError as error:
         raise InputError(f"{config}: {error}") from None
     except (TypeError, ValueError, KeyError) as error:  # a value of the wrong type reaches arithmetic or MONAI
         raise InputError(f"{config}: unusable model config ({type(error).__name__}: {error})") from None
+    metadata = io.read_tensor_metadata(weights)
+    if metadata.get("format", FORMAT) != FORMAT:
+        raise InputError(f"{weights}: weights of format {metadata['format']!r}; this version of dpcn_med reads "
+                         f"{FORMAT!r}")
+    model = _checked_model(weights, config, model_config)
+    if CONFIG_HASH in metadata and metadata[CONFIG_HASH] != config_hash(settings):  # same shapes, another training
+        raise InputError(f"{weights}: saved with another config than {config} (its {CONFIG_HASH} differs): the two "
+                         "files come from different models or trainings; keep the pair save_model wrote together")
     tensors = io.read_tensors(weights)
-    expected = unique_state(model)
-    if set(tensors) != set(expected) or any(tensors[k].shape != v.shape for k, v in expected.items()):
-        missing, unexpected = sorted(set(expected) - set(tensors)), sorted(set(tensors) - set(expected))
-        raise InputError(f"{weights}: does not fit {config.name} (missing {missing[:3]}, unexpected {unexpected[:3]}"
-                         ", or other shapes)")
-    for name, reference in expected.items():
-        # load_state_dict would cast integers silently and keep NaN: a model that registers wrongly, confidently.
+    for name, reference in unique_state(model).items():
+        # load_state_dict would cast integers silently and keep NaN, and cast 1e300 in float64 to Inf: a model that
+        # registers wrongly, confidently.
         tensor = tensors[name]
         if reference.is_floating_point() and not tensor.is_floating_point():
             raise InputError(f"{weights}: tensor {name} is {str(tensor.dtype).removeprefix('torch.')}, expected "
                              "floating point")
-        if tensor.is_floating_point() and not torch.isfinite(tensor).all():
-            raise InputError(f"{weights}: tensor {name} holds NaN or Inf values")
+        if tensor.is_floating_point() and not torch.isfinite(tensor.to(reference.dtype)).all():
+            raise InputError(f"{weights}: tensor {name} holds NaN or Inf values"
+                             + (f" (as {str(reference.dtype).removeprefix('torch.')})"
+                                if tensor.dtype != reference.dtype else ""))
     model.load_state_dict({**model.state_dict(), **tensors})
+    for stage, temperature in vars(model.temperatures()).items():
+        # softplus(-200) is 0 in float32: a softmax dividing by it gives a NaN pose.
+        value = float(temperature.detach())
+        if not (math.isfinite(value) and value > 0):
+            raise InputError(f"{weights}: the learned {stage} temperature is {value!r} (softplus of "
+                             f"temperatures.raw.{stage}); expected a finite number > 0")
     return model.to(device).eval()
+
+
+def _checked_model(weights: Path, config: Path, model_config: ModelConfig) -> DPCN:
+    """The network of ``model_config`` once the names and shapes in the weights' header fit it: the network is first
+    built on the meta device (no memory), so that weights of another model are refused before it is allocated."""
+    with torch.device("meta"):
+        skeleton = DPCN(model_config)
+    names = set(skeleton.state_dict())
+    # named_parameters and named_buffers list a shared extractor once, under its first name, as unique_state does.
+    expected = {name: tuple(tensor.shape) for name, tensor in [*skeleton.named_parameters(),
+                                                               *skeleton.named_buffers()] if name in names}
+    shapes = io.read_tensor_shapes(weights)
+    if shapes != expected:
+        missing, unexpected = sorted(set(expected) - set(shapes)), sorted(set(shapes) - set(expected))
+        raise InputError(f"{weights}: does not fit {config.name} (missing {missing[:3]}, unexpected {unexpected[:3]}"
+                         ", or other shapes)")
+    return DPCN(model_config)

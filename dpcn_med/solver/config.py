@@ -22,6 +22,19 @@ _COUNT_MINIMUMS = {
 divides by ``count - 1``), a scored grid is a solver grid (at least 8), an empty top-k or an up-sampling by 0 gives
 empty tensors or NaN."""
 
+_COUNT_MAXIMUMS = {
+    "sphere_radii": 1024, "peaks": 64, "rotation_half_width": 16, "refine_oversample": 8, "refine_iterations": 30,
+    "scale_bandwidth": MAX_BANDWIDTH, "scale_radii": 4096, "candidate_size": 2 * MAX_BANDWIDTH, "finalists": 64,
+    "finalist_size": 2 * MAX_BANDWIDTH, "upsample": 256, "log_polar_angles": 8192,
+    "log_polar_radii": 8192, "iterations": 32,
+}
+"""Most of each integer field of :class:`SolverConfig`, far above the defaults and every shipped setting: beyond
+them a value is a typo, which allocated gigabytes (``sphere_radii`` and ``upsample`` multiply a grid's size) or
+failed inside torch (``peaks`` beyond the SO(3) grid in ``topk``). A scored grid is at most the largest solver grid
+(``2 * MAX_BANDWIDTH``); after 30 halvings the rotation step is below float32's resolution. ``alternatives`` has no
+maximum: each call sets it (from :attr:`dpcn_med.register.Refinement.starts`), and only the candidates there are
+come back."""
+
 _FLAGS = ("log_magnitude", "half_turns", "refine", "profile")
 
 
@@ -104,7 +117,7 @@ class SolverConfig:
         Raises:
             InputError: a value of the wrong type or out of range, named with the range expected.
         """
-        checked = {name: check_integer(name, getattr(self, name), minimum=minimum)
+        checked = {name: check_integer(name, getattr(self, name), minimum=minimum, maximum=_COUNT_MAXIMUMS.get(name))
                    for name, minimum in _COUNT_MINIMUMS.items()}
         checked.update({name: check_flag(name, getattr(self, name)) for name in _FLAGS})
         if self.bandwidth is not None:
