@@ -956,8 +956,9 @@ def read_tensors(path: str | os.PathLike) -> dict[str, Any]:
         raise InputError(f"{name}: not a readable .safetensors file ({error})") from None
 
 
-def read_tensor_metadata(path: str | os.PathLike) -> dict[str, str]:
-    """The string metadata of a ``.safetensors`` file's header (empty if it has none).
+def read_tensor_header(path: str | os.PathLike) -> tuple[dict[str, str], dict[str, tuple[int, ...]]]:
+    """The header of a ``.safetensors`` file: its string metadata (empty if none) and each tensor's shape (no tensor
+    is read).
 
     Raises:
         InputNotFoundError: the file is missing.
@@ -970,26 +971,8 @@ def read_tensor_metadata(path: str | os.PathLike) -> dict[str, str]:
         raise InputNotFoundError(f"{name}: not found (no such file); check the path")
     try:
         with safe_open(name, framework="pt") as handle:
-            return dict(handle.metadata() or {})
-    except (SafetensorError, OSError, ValueError) as error:
-        raise InputError(f"{name}: not a readable .safetensors file ({error})") from None
-
-
-def read_tensor_shapes(path: str | os.PathLike) -> dict[str, tuple[int, ...]]:
-    """The shape of each tensor of a ``.safetensors`` file, from its header (no tensor is read).
-
-    Raises:
-        InputNotFoundError: the file is missing.
-        InputError: not readable as safetensors.
-    """
-    from safetensors import SafetensorError, safe_open
-
-    name = os.fspath(path)
-    if not os.path.isfile(name):
-        raise InputNotFoundError(f"{name}: not found (no such file); check the path")
-    try:
-        with safe_open(name, framework="pt") as handle:
-            return {key: tuple(handle.get_slice(key).get_shape()) for key in handle.keys()}
+            return (dict(handle.metadata() or {}),
+                    {key: tuple(handle.get_slice(key).get_shape()) for key in handle.keys()})
     except (SafetensorError, OSError, ValueError) as error:
         raise InputError(f"{name}: not a readable .safetensors file ({error})") from None
 

@@ -110,11 +110,11 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
         raise InputError(f"{config}: {error}") from None
     except (TypeError, ValueError, KeyError) as error:  # a value of the wrong type reaches arithmetic or MONAI
         raise InputError(f"{config}: unusable model config ({type(error).__name__}: {error})") from None
-    metadata = io.read_tensor_metadata(weights)
+    metadata, shapes = io.read_tensor_header(weights)
     if metadata.get("format", FORMAT) != FORMAT:
         raise InputError(f"{weights}: weights of format {metadata['format']!r}; this version of dpcn_med reads "
                          f"{FORMAT!r}")
-    model = _checked_model(weights, config, model_config)
+    model = _checked_model(weights, config, model_config, shapes)
     if CONFIG_HASH in metadata and metadata[CONFIG_HASH] != config_hash(settings):  # same shapes, another training
         raise InputError(f"{weights}: saved with another config than {config} (its {CONFIG_HASH} differs): the two "
                          "files come from different models or trainings; keep the pair save_model wrote together")
@@ -140,8 +140,9 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
     return model.to(device).eval()
 
 
-def _checked_model(weights: Path, config: Path, model_config: ModelConfig) -> DPCN:
-    """The network of ``model_config`` once the names and shapes in the weights' header fit it: the network is first
+def _checked_model(weights: Path, config: Path, model_config: ModelConfig, shapes: dict[str, tuple[int, ...]]
+                   ) -> DPCN:
+    """The network of ``model_config`` once the names and ``shapes`` in the weights' header fit it: the network is first
     built on the meta device (no memory), so that weights of another model are refused before it is allocated."""
     with torch.device("meta"):
         skeleton = DPCN(model_config)
@@ -149,7 +150,6 @@ def _checked_model(weights: Path, config: Path, model_config: ModelConfig) -> DP
     # named_parameters and named_buffers list a shared extractor once, under its first name, as unique_state does.
     expected = {name: tuple(tensor.shape) for name, tensor in [*skeleton.named_parameters(),
                                                                *skeleton.named_buffers()] if name in names}
-    shapes = io.read_tensor_shapes(weights)
     if shapes != expected:
         missing, unexpected = sorted(set(expected) - set(shapes)), sorted(set(shapes) - set(expected))
         raise InputError(f"{weights}: does not fit {config.name} (missing {missing[:3]}, unexpected {unexpected[:3]}"

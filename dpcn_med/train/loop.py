@@ -254,7 +254,7 @@ def load_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, config: Train
         raise InputError(f"{description}: is at step {saved['step']}, past this config's optimiser.steps "
                          f"{config.optimiser.steps}; ask for more steps, or {afresh}")
     try:
-        tensors, step = io.read_tensors(weights), io.read_tensor_metadata(weights).get("step")
+        tensors, step = io.read_tensors(weights), io.read_tensor_header(weights)[0].get("step")
     except InputError as error:
         raise InputError(f"{error}; {afresh}") from None
     if step != str(saved["step"]):
