@@ -19,7 +19,7 @@ import tempfile
 import threading
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from dpcn_med import __version__
@@ -212,13 +212,23 @@ def _make_folder(output: Path, *, staging: bool = False) -> Path:
         raise InputError(f"{output}: cannot be written ({error.strerror}); choose another output folder") from None
 
 
-def _same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
-    """Whether ``b`` is or would be the existing file ``a``, however spelt: ``out/x/../in.nii.gz`` with no ``x`` yet
-    names ``out/in.nii.gz`` once the output folders are made (``realpath`` drops ``x/..`` when ``x`` is missing)."""
-    try:
-        return os.path.samefile(os.path.realpath(a), os.path.realpath(b))
-    except OSError:
-        return False
+def _refuse_overwriting_inputs(inputs: dict[str, str], targets: Iterable[Path]) -> None:
+    """Refuse, before any work, a run that would write one of ``targets`` over one of its ``inputs`` (each path with
+    what messages call it), however spelt: a link, or ``out/x/../in.nii.gz`` with no ``x`` yet, which names
+    ``out/in.nii.gz`` once the output folders are made (``realpath`` drops ``x/..`` when ``x`` is missing)."""
+    existing = {}
+    for path, description in inputs.items():
+        with contextlib.suppress(OSError):
+            found = os.stat(os.path.realpath(path))
+            existing.setdefault((found.st_dev, found.st_ino), description)
+    for target in targets:
+        try:
+            found = os.stat(os.path.realpath(target))
+        except OSError:  # not there: nothing to overwrite
+            continue
+        if (found.st_dev, found.st_ino) in existing:
+            raise InputError(f"{target}: is {existing[found.st_dev, found.st_ino]}, which this run would replace; "
+                             "choose another output folder (inputs are never overwritten)")
 
 
 def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespace, *, fixed_mask: str | None = None,
@@ -232,12 +242,8 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
     from dpcn_med.register import register
     from dpcn_med.report import overview_figure, registration_report
 
-    inputs = [p for p in (fixed, moving, fixed_mask, moving_mask) if p is not None]
-    for name in OUTPUT_NAMES:
-        for source in inputs:
-            if _same_file(source, output / name):
-                raise InputError(f"{output / name}: is an input of this run; choose another output folder (inputs "
-                                 "are never overwritten)")
+    _refuse_overwriting_inputs({p: "an input of this run" for p in (fixed, moving, fixed_mask, moving_mask)
+                                if p is not None}, [output / name for name in OUTPUT_NAMES])
     check_output_folder(output)
 
     outputs = written_outputs(args)
@@ -389,35 +395,12 @@ def _earlier_report(folder: Path, request: dict, outputs: Sequence[str]) -> tupl
     return report, False
 
 
-def _check_outputs_are_not_inputs(pairs: list[dict], to_register: list[dict], output: Path) -> None:
-    """Refuse, before any work, a batch in which one pair's output would replace another's input (or the summary
-    an input): the second pair would read the first's result, or find its input deleted."""
-    inputs = {}
-    for pair in pairs:
-        for key in ("fixed", "moving", "fixed_mask", "moving_mask"):
-            with contextlib.suppress(OSError):
-                if pair[key] is not None:
-                    found = os.stat(pair[key])
-                    inputs.setdefault((found.st_dev, found.st_ino), f"the {key.replace('_', ' ')} of pair "
-                                      f"{pair['id']!r}")
-    targets = [output / "summary.csv", *(output / pair["id"] / name for pair in to_register for name in OUTPUT_NAMES)]
-    for target in targets:
-        with contextlib.suppress(OSError):
-            found = os.stat(os.path.realpath(target))  # realpath: out/x/../in.nii.gz names out/in.nii.gz once x exists
-            if (found.st_dev, found.st_ino) in inputs:
-                raise InputError(f"{target}: is {inputs[found.st_dev, found.st_ino]}, which this run would replace; "
-                                 "choose another output folder (inputs are never overwritten)")
-
-
 def _register_batch(args: argparse.Namespace) -> int:
     from dpcn_med import io
     from dpcn_med.register import check_options
 
     pairs = _read_pairs(args.pairs)
     summary = args.output / "summary.csv"
-    if _same_file(args.pairs, summary):
-        raise InputError(f"{summary}: is this run's pairs file; choose another output folder (inputs are never "
-                         "overwritten)")
     if os.path.lexists(summary) and not summary.is_file():
         raise InputError(f"{summary}: exists and is not a file; choose another output folder")
     check_output_folder(args.output)
@@ -427,8 +410,15 @@ def _register_batch(args: argparse.Namespace) -> int:
     earlier = [_earlier_report(args.output / pair["id"], _request(pair["fixed"], pair["moving"], pair["fixed_mask"],
                                                                   pair["moving_mask"], args), outputs)
                for pair in pairs]
-    _check_outputs_are_not_inputs(pairs, [pair for pair, (report, _) in zip(pairs, earlier) if report is None],
-                                  args.output)
+    # One pair's output must not replace another's input either: the second would read the first's result.
+    inputs = {str(args.pairs): "this run's pairs file"}
+    for pair in pairs:
+        for key in ("fixed", "moving", "fixed_mask", "moving_mask"):
+            if pair[key] is not None:
+                inputs.setdefault(pair[key], f"the {key.replace('_', ' ')} of pair {pair['id']!r}")
+    _refuse_overwriting_inputs(inputs, [summary, *(args.output / pair["id"] / name
+                                                   for pair, (report, _) in zip(pairs, earlier) if report is None
+                                                   for name in OUTPUT_NAMES)])
     rows, codes = [], []
     for index, (pair, (report, replaced)) in enumerate(zip(pairs, earlier), start=1):
         label = f"[{index}/{len(pairs)}] {pair['id']} "
