@@ -1,10 +1,11 @@
 """The real CT-MR check: MRI-DIR CT onto its T2 (unaligned scanner frames), against an exhaustive MI search.
 
-1. Reference: Mattes mutual information (dpcn_med's refinement: rigid, multi-resolution, fixed-foreground mask)
-   started from every one of ``--starts`` rotations (the 24 rotations of the cube, then seeded uniform ones; the
-   cube's first ones below 24) with the foreground centres aligned; the start that ends with the lowest metric gives
-   the reference alignment. Also reported: how many starts reach it, and where a single local search from the image
-   centres ends.
+1. Reference: Mattes mutual information (the benchmark baselines' optimiser, ``BASELINE_REFINEMENT``: rigid,
+   multi-resolution, fixed-foreground mask, 2 mm first steps; fixed, so the reference does not move with dpcn_med's
+   defaults) started from every one of ``--starts`` rotations (the 24 rotations of the cube, then seeded uniform
+   ones; the cube's first ones below 24) with the foreground centres aligned; the start that ends with the lowest
+   metric gives the reference alignment. Also reported: how many starts reach it, and where a single local search
+   from the image centres ends.
 2. ``dpcn_med.register`` with a model (learning-free by default) from the stored pose and from ``--rotations``
    extra random rotations of the CT about its centre (uniform over SO(3)): the angle and the largest corner
    distance (mm, over the T2 foreground's bounding box) to the reference, and how many are within 3 degrees and
@@ -26,10 +27,11 @@ import numpy as np
 import SimpleITK as sitk
 import torch
 
+from dpcn_med.benchmark import BASELINE_REFINEMENT
 from dpcn_med.evaluation import foreground_corners, moved_copy
 from dpcn_med.geometry import homogeneous_matrix, random_rotation, scale_and_rotation, similarity_transform
 from dpcn_med.preprocess import Preprocessing, foreground_box, prepare
-from dpcn_med.register import Refinement, mattes_metric, refine_transform, register
+from dpcn_med.register import mattes_metric, refine_transform, register
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
@@ -76,10 +78,10 @@ def difference(a: sitk.Transform, b: sitk.Transform, corners: np.ndarray) -> tup
 
 
 def exhaustive_search(fixed: sitk.Image, moving: sitk.Image, starts: int) -> tuple[list[dict], sitk.Transform]:
-    preprocessing, refinement = Preprocessing(), Refinement()
+    preprocessing, refinement = Preprocessing(), BASELINE_REFINEMENT
     fixed_prepared = prepare(fixed, config=preprocessing)
     moving_centre = foreground_box(moving)[0]
-    mask = sitk.BinaryDilate(fixed_prepared.foreground, [refinement.mask_margin_voxels] * 3)
+    mask = sitk.BinaryDilate(fixed_prepared.foreground, [BASELINE_REFINEMENT.mask_margin_voxels] * 3)
     centre = np.asarray(fixed_prepared.centre, dtype=float)
     rotations = cube_rotations()
     extra = random_rotation(max(0, starts - len(rotations)), torch.Generator().manual_seed(0)).numpy()
@@ -121,8 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     # The usual local start: image centres aligned, no rotation (SimpleITK's GEOMETRY initialiser).
     centre_start = sitk.CenteredTransformInitializer(fixed, moving, sitk.VersorRigid3DTransform(),
                                                      sitk.CenteredTransformInitializerFilter.GEOMETRY)
-    mask = sitk.BinaryDilate(prepare(fixed).foreground, [Refinement().mask_margin_voxels] * 3)
-    local = refine_transform(fixed, moving, centre_start, (mask, None))
+    mask = sitk.BinaryDilate(prepare(fixed).foreground, [BASELINE_REFINEMENT.mask_margin_voxels] * 3)
+    local = refine_transform(fixed, moving, centre_start, (mask, None), BASELINE_REFINEMENT)
     local_angle, local_distance = difference(local, reference, corners)
 
     rows = []

@@ -56,10 +56,14 @@ class Refinement:
         histogram_bins: Mattes histogram bins, at least 8.
         iterations: optimiser iterations per level, at least 1.
         max_step_mm: largest first step of the regular-step gradient descent at the coarsest level, as a physical
-            shift in mm (> 0). In :func:`refine_candidates` each finer level starts at this times its shrink factor
-            over the coarsest one's (2, 1, 0.5 mm by default): started at 2 mm from 0.65 mm off, the full-resolution
-            level of an MRI-DIR CT pose jumped to another optimum 1.9 mm off. :func:`refine_transform`, one
-            SimpleITK run over the levels, starts each at this step.
+            shift in mm (> 0), or ``None`` (default) for half the finest voxel spacing of the fixed image's coarsest
+            level (:func:`first_step_mm`): 4 mm for a 2 mm image shrunk 4 times, 2 mm for a 1 mm one. A fixed 2 mm
+            left two MNI pseudo-CT poses of the benchmark (2 mm voxels, 8 mm at the coarsest level) in a local
+            optimum 16 mm off or on the half-turn twin; a fixed 4 mm took a 24 mm object in 4 mm voxels to a pose
+            turned by 90 degrees (docs/registration.md, step 6). In :func:`refine_candidates` each finer level starts
+            at this times its shrink factor over the coarsest one's (4, 2, 1 mm for the 2 mm image): started at 2 mm
+            from 0.65 mm off, the full-resolution level of a 1 mm MRI-DIR CT pose jumped to another optimum 1.9 mm
+            off. :func:`refine_transform`, one SimpleITK run over the levels, starts each at this step.
         mask_margin_voxels: the fixed foreground, dilated by this many (preprocessing) voxels, is where the metric is
             sampled when the user gives no fixed mask.
         starts: global candidates refined: the solver's choice and up to ``starts - 1`` runner-ups (1: its choice
@@ -87,7 +91,7 @@ class Refinement:
     samples: int = 30_000
     histogram_bins: int = 32
     iterations: int = 100
-    max_step_mm: float = 2.0
+    max_step_mm: float | None = None
     mask_margin_voxels: int = 3
     starts: int = 16
     survivors: tuple[int, ...] = (2, 1)
@@ -108,7 +112,8 @@ class Refinement:
             "samples": check_integer("samples", self.samples, minimum=1000),
             "histogram_bins": check_integer("histogram_bins", self.histogram_bins, minimum=8),
             "iterations": check_integer("iterations", self.iterations, minimum=1),
-            "max_step_mm": check_real("max_step_mm", self.max_step_mm, minimum=0, above=True),
+            "max_step_mm": None if self.max_step_mm is None else check_real("max_step_mm", self.max_step_mm,
+                                                                             minimum=0, above=True),
             "mask_margin_voxels": check_integer("mask_margin_voxels", self.mask_margin_voxels, minimum=0),
             "starts": check_integer("starts", self.starts, minimum=1),
             "survivors": tuple(check_integer(f"survivors[{level}]", count, minimum=1)
@@ -682,6 +687,13 @@ def level_factors(size: Sequence[int], factor: int) -> list[int]:
     return [max(1, min(factor, length // MIN_LEVEL_VOXELS)) for length in size]
 
 
+def first_step_mm(settings: Refinement, spacing: Sequence[float]) -> float:
+    """The regular-step gradient descent's first step (mm) at the coarsest level of fixed voxel ``spacing`` (mm):
+    ``settings.max_step_mm``, or half the finest of ``spacing`` where that is ``None``, so that the step follows the
+    image's scale (a mouse at 0.1 mm and a head at 2 mm alike)."""
+    return settings.max_step_mm if settings.max_step_mm is not None else 0.5 * float(min(spacing))
+
+
 def image_pyramid(fixed: sitk.Image, moving: sitk.Image, settings: Refinement = Refinement()
                   ) -> list[tuple[sitk.Image, sitk.Image]]:
     """Both images per refinement level, coarse to fine: float32, smoothed (``settings.smoothing_mm``, physical
@@ -726,8 +738,9 @@ def refine_candidates(pyramid: list[tuple[sitk.Image, sitk.Image]], candidates: 
     """
     # The images are pre-shrunk; each level's first step shrinks with them (Refinement.max_step_mm), as ITK's
     # multi-resolution examples (MultiResImageRegistration1) shrink the optimiser's step between levels.
+    coarsest = first_step_mm(settings, pyramid[0][0].GetSpacing())
     level_settings = [replace(settings, shrink_factors=(1,), smoothing_mm=(0.0,),
-                              max_step_mm=settings.max_step_mm * factor / settings.shrink_factors[0])
+                              max_step_mm=coarsest * factor / settings.shrink_factors[0])
                       for factor in settings.shrink_factors]
     # Each level's fixed image cropped to the fixed mask's box once, for every metric evaluation on that level.
     cropped = [fixed if masks[0] is None else _crop_to_mask(fixed, masks[0]) for fixed, _ in pyramid]
@@ -789,7 +802,8 @@ def refine_transform(fixed: sitk.Image, moving: sitk.Image, initial: sitk.Transf
                      masks: tuple[sitk.Image | None, sitk.Image | None], settings: Refinement = Refinement(),
                      progress: Callable[[float], None] | None = None) -> sitk.Transform:
     """Multi-resolution Mattes mutual-information registration started from ``initial``, in one SimpleITK run: every
-    level's first step is ``settings.max_step_mm`` (:func:`refine_candidates` shrinks it level by level).
+    level's first step is the coarsest level's (:func:`first_step_mm`; :func:`refine_candidates` shrinks it level by
+    level).
 
     The optimiser moves a residual transform ``D`` near the identity and the result is ``initial o D``: a versor
     parameterises rotations badly near 180 degrees (its scalar part vanishes), where a global estimate often lies.
@@ -799,7 +813,8 @@ def refine_transform(fixed: sitk.Image, moving: sitk.Image, initial: sitk.Transf
         untouched.
     """
     method = _registration_method(fixed, masks, settings)
-    method.SetOptimizerAsRegularStepGradientDescent(learningRate=settings.max_step_mm, minStep=1e-2,
+    coarsest = np.asarray(fixed.GetSpacing()) * level_factors(fixed.GetSize(), settings.shrink_factors[0])
+    method.SetOptimizerAsRegularStepGradientDescent(learningRate=first_step_mm(settings, coarsest), minStep=1e-2,
                                                     numberOfIterations=settings.iterations,
                                                     relaxationFactor=0.5, gradientMagnitudeTolerance=1e-6)
     method.SetOptimizerScalesFromPhysicalShift()

@@ -32,6 +32,8 @@ from dpcn_med.register import (
     _merge_same_poses,
     _registration_method,
     field_of_view_overlap,
+    first_step_mm,
+    image_pyramid,
     mattes_metric,
     register,
     resolve_device,
@@ -163,6 +165,20 @@ class TestCandidates:
         rng, centre = np.random.default_rng([0, list(CASES).index("mni-pseudo-ct")]), foreground_box(fixed)[0]
         truth = [rotation_in_bin(rng, *bounds, centre, 60.0) for bounds in [(0, 30)] * 10 + [(30, 60)] * 3][-1]
         result = register(fixed, moved_copy(whole, truth))
+        assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 0.5
+
+    @pytest.mark.parametrize(("low", "trial"), [(60, 6), (120, 0)])
+    def test_the_first_step_follows_the_coarsest_voxels(self, low, trial):
+        """`dpcn-med benchmark --full`'s MNI pseudo-CT poses 60-90 and 120-150, trials 6 and 0 (counted from 0, as in
+        results.csv): with a 2 mm first step, a quarter of a coarsest-level voxel here, the first ended on the
+        half-turn twin 150 mm off and the second in a local optimum 16 mm off; half a voxel, 4 mm, registers both."""
+        fixed, whole = CASES["mni-pseudo-ct"][2]()
+        rng, centre = np.random.default_rng([0, list(CASES).index("mni-pseudo-ct")]), foreground_box(fixed)[0]
+        poses = [rotation_in_bin(rng, bin_low, bin_low + 30, centre, 60.0) for bin_low in range(0, 180, 30)
+                 for _ in range(10)]
+        truth = poses[low // 30 * 10 + trial]
+        result = register(fixed, moved_copy(whole, truth), resample=False)
+        assert first_step_mm(Refinement(), image_pyramid(fixed, whole)[0][0].GetSpacing()) == 4.0
         assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 0.5
 
     def test_starts_that_reach_one_pose_are_one_survivor(self):
@@ -536,6 +552,9 @@ class TestErrors:
 class TestRefinementSettings:
     def test_defaults_and_typical_values_construct(self):
         assert Refinement() == Refinement(shrink_factors=[4, 2, 1], smoothing_mm=[2, 1, 0], survivors=[2, 1])
+        assert Refinement().max_step_mm is None  # half a coarsest-level voxel
+        assert first_step_mm(Refinement(), (5.0, 5.0, 16.0)) == 2.5  # RIRE's 1.25 x 1.25 x 4 mm shrunk 4 times
+        assert first_step_mm(Refinement(max_step_mm=2), (8.0, 8.0, 8.0)) == 2.0
         settings = Refinement(shrink_factors=(np.int64(2), 1), smoothing_mm=(1, 0), samples=1000, histogram_bins=8,
                               iterations=1, max_step_mm=1, mask_margin_voxels=0, starts=1, survivors=(1,),
                               stored_start=np.bool_(False), seed=2 ** 32 - 1)
