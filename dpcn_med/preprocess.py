@@ -20,6 +20,13 @@ if TYPE_CHECKING:
     import pyvista
 
 MODALITIES = ("auto", "ct", "mr", "us")
+LOWEST_HU = -1024.0
+"""No Hounsfield value lies below air's -1024 HU: a CT's voxels below it are the scanner's padding."""
+OUTLIER_PERCENTILES = (0.1, 99.9)
+OUTLIER_SPREADS = 10.0
+"""Values more than this many ``OUTLIER_PERCENTILES`` ranges beyond them are outliers for Otsu's histogram."""
+UNIFORM_SPREAD = 1e-6
+"""Foreground percentiles closer than this fraction of the image's range are one intensity."""
 
 
 @dataclass(frozen=True)
@@ -66,12 +73,109 @@ class Preprocessing:
 
 
 
-def foreground_mask(image: sitk.Image) -> sitk.Image:
-    """Voxels brighter than Otsu's threshold, the largest connected component, holes filled: a binary image."""
-    mask = sitk.OtsuThreshold(sitk.Cast(image, sitk.sitkFloat32), 0, 1)
-    components = sitk.RelabelComponent(sitk.ConnectedComponent(mask), sortByObjectSize=True)
-    largest = components == 1
-    return sitk.BinaryFillhole(largest)
+def _strided_sample(values: np.ndarray) -> np.ndarray:
+    """About a million of ``values``, evenly strided: plenty for a percentile."""
+    flat = values.ravel()
+    return flat[::max(1, flat.size // 1_000_000)]
+
+
+def _binary_like(image: sitk.Image, array: np.ndarray) -> sitk.Image:
+    """A boolean ``[z, y, x]`` array as a uint8 image on ``image``'s grid."""
+    binary = sitk.GetImageFromArray(array.astype(np.uint8))
+    binary.CopyInformation(image)
+    return binary
+
+
+def _outlier_bounds(values: np.ndarray) -> tuple[float, float] | None:
+    """The bulk's ``OUTLIER_PERCENTILES`` when some of ``values`` lie more than ``OUTLIER_SPREADS`` times their
+    distance beyond them, else ``None``."""
+    low, high = np.percentile(_strided_sample(values), OUTLIER_PERCENTILES)
+    margin = OUTLIER_SPREADS * (high - low)
+    if margin > 0 and (values.min() < low - margin or values.max() > high + margin):
+        return float(low), float(high)
+    return None
+
+
+def clip_outliers(image: sitk.Image) -> sitk.Image:
+    """``image`` with values far outside its bulk (see :func:`foreground_mask`) clipped to the bulk's
+    ``OUTLIER_PERCENTILES``, float32; ``image`` itself when there are none."""
+    bounds = _outlier_bounds(sitk.GetArrayViewFromImage(image))
+    return image if bounds is None else sitk.Clamp(image, sitk.sitkFloat32, *bounds)
+
+
+def _otsu(image: sitk.Image, counted: np.ndarray | None) -> tuple[sitk.Image, float]:
+    """Otsu's threshold over the ``counted`` voxels (all when ``None``), far outliers clipped: the counted voxels
+    above it (uint8, 1) and the threshold."""
+    array = sitk.GetArrayViewFromImage(image)
+    values = sitk.Cast(image, sitk.sitkFloat32)
+    bounds = _outlier_bounds(array if counted is None else array[counted])
+    if bounds is not None:
+        values = sitk.Clamp(values, sitk.sitkFloat32, *bounds)
+    otsu = sitk.OtsuThresholdImageFilter()
+    otsu.SetInsideValue(0)
+    otsu.SetOutsideValue(1)
+    if counted is None:
+        bright = otsu.Execute(values)
+    else:
+        otsu.SetMaskValue(1)
+        bright = otsu.Execute(values, _binary_like(image, counted))
+    return bright, otsu.GetThreshold()
+
+
+def _drawn_along_an_edge(image: sitk.Image, inside: np.ndarray, counted: np.ndarray | None) -> bool:
+    """Whether a mask is a segmentation: the median of its inner border and that of the voxels just outside it lie
+    on opposite sides of the image's Otsu threshold (a box or a cut through the anatomy has the same on both)."""
+    array = sitk.GetArrayViewFromImage(image)
+    region = _binary_like(image, inside)
+    inner = inside & ~sitk.GetArrayFromImage(sitk.BinaryErode(region, [1, 1, 1])).astype(bool)
+    outer = sitk.GetArrayFromImage(sitk.BinaryDilate(region, [1, 1, 1])).astype(bool) & ~inside
+    if counted is not None:
+        outer &= counted
+    if not inner.any() or not outer.any():
+        return False
+    threshold = _otsu(image, counted)[1]
+    return bool((np.median(array[inner]) > threshold) != (np.median(array[outer]) > threshold))
+
+
+def foreground_mask(image: sitk.Image, mask: sitk.Image | None = None) -> sitk.Image:
+    """Voxels brighter than Otsu's threshold, the largest connected component, holes filled: a binary image.
+
+    Otsu's threshold counts only the voxels that matter:
+
+    - no CT padding: when the image goes below ``LOWEST_HU``, the voxels below it (the scanner's fill outside its
+      circular field of view, -3024 or -2048 HU, and its resampled edge) neither count nor are foreground. Counted,
+      Otsu split them from air and the whole field of view became the body.
+    - no far outliers: values more than ``OUTLIER_SPREADS`` 0.1-99.9 percentile ranges beyond them are clipped to
+      them (8 voxels at 300 times the maximum made the foreground 1 voxel). The benchmark volumes lie within 1.04
+      ranges, 3071 HU metal in the MNI pseudo-CT within 0.63 (2.2 in a CT with no bone): their foreground is
+      Otsu's over the whole image, as before.
+    - only inside ``mask``, when given; the foreground lies within it. A mask drawn along an edge, a segmentation
+      (the medians just inside and just outside its border on either side of the image's threshold), is itself the
+      foreground: a lung mask holds dark parenchyma, and Otsu inside it finds the vessels. Measured with register()
+      on a chest CT with lung masks, a mask around the smaller of two objects and rough boxes around the 2 mm MNI
+      head: Otsu inside the mask 277, 0.15 and 0.05 mm off; the mask itself 0.21, 13.9 and 0.49 mm; this 0.21, 0.15
+      and 0.05 mm.
+
+    Args:
+        image: any 3-D image.
+        mask: where to look, binary, on ``image``'s grid.
+
+    Returns:
+        uint8 image on ``image``'s grid, 1 on the foreground; empty when no voxel counts.
+    """
+    array = sitk.GetArrayViewFromImage(image)
+    counted = array >= LOWEST_HU if array.min() < LOWEST_HU else None
+    if mask is not None:
+        inside = sitk.GetArrayViewFromImage(mask) > 0
+        within = inside if counted is None else inside & counted
+        if _drawn_along_an_edge(image, inside, counted):
+            return _binary_like(image, within)
+        counted = within
+    if counted is not None and not counted.any():
+        return _binary_like(image, counted)
+    components = sitk.RelabelComponent(sitk.ConnectedComponent(_otsu(image, counted)[0]), sortByObjectSize=True)
+    filled = sitk.BinaryFillhole(components == 1)
+    return filled if mask is None else sitk.And(filled, mask > 0)
 
 
 def foreground_box(image: sitk.Image, mask: sitk.Image | None = None) -> tuple[np.ndarray, float]:
@@ -100,11 +204,14 @@ def normalize_intensity(image: sitk.Image, percentiles: tuple[float, float] = (1
     """Map the ``percentiles`` of the foreground to 0 and 1 and clip to ``[0, 1]``: float32 image, same geometry.
 
     Robust to a few extreme voxels (markers, metal) and to the amount of background. ``mask``: the image's
-    :func:`foreground_mask`, if already computed.
+    :func:`foreground_mask`, if already computed. A uniform foreground (a binary phantom, a voxelised mesh), whose
+    percentiles coincide, maps to 1 and the image's minimum to 0: mapped from its own percentiles, it was all 0.
     """
     array = sitk.GetArrayViewFromImage(image).astype(np.float32)
     inside = sitk.GetArrayFromImage(foreground_mask(image) if mask is None else mask).astype(bool)
     low, high = np.percentile(array[inside] if inside.any() else array, percentiles)
+    if high - low <= UNIFORM_SPREAD * (array.max() - array.min()):
+        low = array.min()
     scaled = np.clip((array - low) / max(high - low, 1e-12), 0.0, 1.0)
     out = sitk.GetImageFromArray(scaled)
     out.CopyInformation(image)
@@ -116,9 +223,8 @@ def detect_modality(image: sitk.Image, config: Preprocessing = Preprocessing()) 
 
     Ultrasound cannot be told from MR by its intensities; both use the same robust percentiles.
     """
-    array = sitk.GetArrayViewFromImage(image)
-    step = max(1, array.size // 1_000_000)  # a strided sample is plenty for a percentile
-    return "ct" if np.percentile(array.ravel()[::step], 1.0) < config.ct_detection_hu else "mr"
+    sample = _strided_sample(sitk.GetArrayViewFromImage(image))
+    return "ct" if np.percentile(sample, 1.0) < config.ct_detection_hu else "mr"
 
 
 def normalize_modality(image: sitk.Image, modality: str, mask: sitk.Image, config: Preprocessing = Preprocessing()
@@ -225,12 +331,10 @@ def prepare(image: sitk.Image, *, modality: str = "auto", mask: sitk.Image | Non
     if max(factors) > 1:
         image = sitk.BinShrink(image, factors)
         mask = None if mask is None else sitk.BinShrink(sitk.Cast(mask > 0, sitk.sitkFloat32), factors) >= 0.5
-    foreground = foreground_mask(image)
-    if mask is not None:  # the user's mask says where to look; the object is what is bright there
-        foreground = sitk.And(foreground, sitk.Cast(mask > 0, sitk.sitkUInt8))
-        if not sitk.GetArrayViewFromImage(foreground).any():
-            raise InputError(f"{mask_name}: holds no foreground of its image (only background inside it); give a "
-                             "mask that covers the anatomy, or leave it out")
+    foreground = foreground_mask(image, mask)
+    if mask is not None and not sitk.GetArrayViewFromImage(foreground).any():
+        raise InputError(f"{mask_name}: holds no foreground of its image (only background inside it); give a "
+                         "mask that covers the anatomy, or leave it out")
     used = detect_modality(image, config) if modality == "auto" else modality
     normalised = normalize_modality(image, used, foreground, config)
     if mask is not None:

@@ -32,7 +32,15 @@ from dpcn_med.geometry import (
     scale_and_rotation,
     similarity_transform,
 )
-from dpcn_med.preprocess import MODALITIES, Preprocessing, pair_grids, prepare, resample_to_grid, to_tensor
+from dpcn_med.preprocess import (
+    MODALITIES,
+    Preprocessing,
+    clip_outliers,
+    pair_grids,
+    prepare,
+    resample_to_grid,
+    to_tensor,
+)
 from dpcn_med.solver import SolverConfig, StageTemperatures, solve
 from dpcn_med.solver.translation import phase_translation
 from dpcn_med.solver.validation import MAX_BANDWIDTH, check_bandwidth, check_mode
@@ -493,16 +501,19 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         sampled = fixed_mask_image if fixed_mask_image is not None else sitk.BinaryDilate(
             fixed_prepared.foreground, [refinement.mask_margin_voxels] * 3)
         masks = (sampled, moving_mask_image)
-        metric["stored"] = mattes_metric(fixed_image, moving_image, sitk.Transform(3, sitk.sitkIdentity), masks,
+        # The metric's histogram spans each image's range: 8 hot voxels at 300 times the maximum squeezed the anatomy
+        # into its first bin and took a right pose 247 mm off.
+        fixed_values, moving_values = clip_outliers(fixed_image), clip_outliers(moving_image)
+        metric["stored"] = mattes_metric(fixed_values, moving_values, sitk.Transform(3, sitk.sitkIdentity), masks,
                                          refinement)
-        pyramid = image_pyramid(fixed_image, moving_image, refinement)
+        pyramid = image_pyramid(fixed_values, moving_values, refinement)
         chosen, candidate, candidate_metrics = refine_candidates(
             pyramid, [transform for transform, _ in candidates], masks, refinement,
             lambda fraction: report("refining", 0.4 + 0.5 * fraction))
         final = candidates[chosen][0]
-        metric["dpc"] = mattes_metric(fixed_image, moving_image, final, masks, refinement)
+        metric["dpc"] = mattes_metric(fixed_values, moving_values, final, masks, refinement)
         if metric["dpc"] is not None and candidate is not None:
-            metric["refined"] = mattes_metric(fixed_image, moving_image, candidate, masks, refinement)
+            metric["refined"] = mattes_metric(fixed_values, moving_values, candidate, masks, refinement)
             # The local optimiser only ever starts from a global estimate; keep it only if it improved the metric.
             if metric["refined"] is not None and metric["refined"] <= metric["dpc"]:
                 final, refined = candidate, True

@@ -14,6 +14,7 @@ from dpcn_med.preprocess import (
     canonical_grid,
     detect_modality,
     foreground_box,
+    foreground_mask,
     normalize_intensity,
     normalize_modality,
     pair_grids,
@@ -25,6 +26,7 @@ from dpcn_med.preprocess import (
     to_tensor,
     voxelize,
 )
+from tests.conftest import shared_path
 
 
 def _box_image() -> sitk.Image:
@@ -83,6 +85,95 @@ class TestForegroundBox:
             foreground_box(image)
 
 
+def _padded_ct(lowest_hu: int = 0, insert_hu: int | None = None) -> tuple[sitk.Image, np.ndarray]:
+    """A body off-centre in its scanner's circular field of view, -3024 HU outside it, int16: ``(image, body)``.
+
+    Air at -1000 HU; the body ramps along x from ``lowest_hu`` to 300 HU (from -900, any shift of Otsu's threshold
+    moves the outline); ``insert_hu`` marks a rod of 4 voxels inside it (metal at 3071 HU).
+    """
+    z, y, x = np.mgrid[:16, :48, :48]
+    array = np.full(x.shape, -1000, dtype=np.int16)
+    body = (((x - 23.5) / 13) ** 2 + ((y - 28) / 9) ** 2 <= 1) & (z > 2) & (z < 13)
+    array[body] = (lowest_hu + (300 - lowest_hu) * (x[body] - 10) / 27).astype(np.int16)
+    if insert_hu is not None:
+        array[(abs(x - 20) < 1) & (abs(y - 28) < 1) & (z > 5) & (z < 10)] = insert_hu
+    array[np.hypot(x - 23.5, y - 23.5) > 23.5] = -3024
+    image = sitk.GetImageFromArray(array)
+    image.SetSpacing((1.0, 1.0, 2.0))
+    return image, body
+
+
+def _two_objects() -> tuple[sitk.Image, np.ndarray, sitk.Image]:
+    """A large sphere (100) and, right of x = 55, a smaller ellipsoid (80): ``(image, smaller, mask)``, the mask
+    holding the image's right half."""
+    z, y, x = np.mgrid[:40, :60, :100]
+    array = np.zeros(x.shape, dtype=np.float32)
+    array[(x - 25) ** 2 + (y - 30) ** 2 + (z - 20) ** 2 < 15 ** 2] = 100.0
+    smaller = ((x - 75) / 12) ** 2 + ((y - 30) / 9) ** 2 + ((z - 20) / 7) ** 2 <= 1
+    array[smaller] = 80.0
+    image = sitk.GetImageFromArray(array)
+    mask = sitk.GetImageFromArray((x >= 55).astype(np.uint8))
+    return image, smaller, mask
+
+
+def _on_grid(array: np.ndarray, image: sitk.Image) -> sitk.Image:
+    out = sitk.GetImageFromArray(array)
+    out.CopyInformation(image)
+    return out
+
+
+class TestForegroundMask:
+    def test_scanner_padding_is_neither_counted_nor_foreground(self):
+        """Otsu over the raw histogram split the padding from air and gave the whole field of view."""
+        image, body = _padded_ct()
+        foreground = sitk.GetArrayFromImage(foreground_mask(image)).astype(bool)
+        np.testing.assert_array_equal(foreground, body)
+
+    @pytest.mark.shared_data
+    def test_resampled_padding_is_not_foreground(self):
+        """The MRI-DIR CT at 3 mm: its -2048 HU padding, resampled, runs from -2049 to -1025 HU; counted, 18378 voxels
+        of air (below -500 HU) joined the phantom."""
+        image = sitk.ReadImage(str(shared_path("mridir/mridir_ct_3p0mm.nii.gz")))
+        foreground = sitk.GetArrayFromImage(foreground_mask(image)).astype(bool)
+        assert foreground.sum() > 100_000 and not (sitk.GetArrayFromImage(image)[foreground] < -500).any()
+
+    def test_metal_in_a_ct_is_not_an_outlier(self):
+        """3071 HU lies 2.2 of the bulk's 0.1-99.9 percentile ranges beyond it, not far enough to be clipped: the
+        foreground is Otsu's over the field of view."""
+        image, body = _padded_ct(lowest_hu=-900, insert_hu=3071)
+        field_of_view = sitk.Cast(image != -3024, sitk.sitkUInt8)
+        unclipped = sitk.OtsuThreshold(sitk.Cast(image, sitk.sitkFloat32), field_of_view, 0, 1, 128, True, 1)
+        largest = sitk.RelabelComponent(sitk.ConnectedComponent(unclipped), sortByObjectSize=True) == 1
+        expected = sitk.GetArrayFromImage(sitk.BinaryFillhole(largest))
+        assert 0 < expected.sum() < body.sum()  # the threshold falls within the body's ramp
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(foreground_mask(image)), expected)
+
+    def test_a_few_hot_voxels_do_not_take_over(self):
+        """8 voxels at 300 times the maximum (a hot pixel, fit failures) made the foreground 1 voxel."""
+        image, smaller, _ = _two_objects()
+        array = sitk.GetArrayFromImage(image) + np.random.default_rng(0).normal(0, 2, smaller.shape).astype(np.float32)
+        clean = sitk.GetArrayFromImage(foreground_mask(_on_grid(array, image)))
+        array.flat[np.flatnonzero(smaller)[::500][:8]] = 300 * array.max()
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(foreground_mask(_on_grid(array, image))), clean)
+
+    def test_a_mask_around_the_smaller_object_gives_that_object(self):
+        """Otsu counts only the voxels inside the mask; the largest object elsewhere no longer decides."""
+        image, smaller, mask = _two_objects()
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(foreground_mask(image, mask)), smaller)
+
+    def test_a_segmentation_mask_is_its_own_foreground(self):
+        """A lung mask on a chest CT: dark inside, bright wall just outside. Otsu inside it finds only the vessels."""
+        z, y, x = np.mgrid[:24, :40, :48]
+        array = np.full(x.shape, -1000, dtype=np.int16)
+        array[((x - 23.5) / 21) ** 2 + ((y - 20) / 15) ** 2 <= 1] = 40
+        lungs = (((abs(x - 23.5) - 10) / 6) ** 2 + ((y - 20) / 9) ** 2 <= 1) & (z >= 4)  # open: not a hole
+        array[lungs] = -850
+        array[lungs & (np.random.default_rng(0).random(x.shape) < 0.03)] = 0  # vessels
+        image = sitk.GetImageFromArray(array)
+        mask = _on_grid(lungs.astype(np.uint8), image)
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(foreground_mask(image, mask)), lungs)
+
+
 class TestCanonicalGrid:
     def test_centred_on_the_foreground_with_the_requested_fill(self):
         image = _box_image()
@@ -109,6 +200,12 @@ class TestSolverGrid:
         assert tensor.shape == (1, 1, 16, 16, 16)
         assert tensor.min() >= 0.0 and tensor.max() <= 1.0
         assert grid.size == 16
+
+    def test_a_uniform_foreground_maps_to_one(self):
+        """A binary phantom's percentiles coincide; mapped from them, the object was 0 like the background."""
+        image = _box_image()
+        normalised = sitk.GetArrayFromImage(normalize_intensity(image))
+        np.testing.assert_array_equal(normalised, sitk.GetArrayFromImage(image) / 100.0)
 
     def test_normalisation_maps_foreground_percentiles_to_the_unit_range(self):
         array = np.linspace(0, 1000, 16 * 16 * 16, dtype=np.float32).reshape(16, 16, 16)
@@ -189,6 +286,20 @@ class TestPrepare:
         assert array[8:12, 5:15, 20:30].max() == 0.0 and array[8:12, 5:15, 10:20].mean() > 0.2
         expected = image.TransformContinuousIndexToPhysicalPoint((14.5, 9.5, 9.5))
         np.testing.assert_allclose(prepared.centre, expected, atol=1e-9)
+
+    def test_a_mask_around_the_smaller_object_centres_on_it(self):
+        """The mask was intersected with the whole image's foreground, the larger object: "holds no foreground"."""
+        image, smaller, mask = _two_objects()
+        prepared = prepare(image, mask=mask, mask_name="right.nii.gz")
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(prepared.foreground), smaller)
+        np.testing.assert_allclose(prepared.centre, (75.0, 30.0, 20.0))
+
+    def test_a_mask_over_background_only_is_named(self):
+        image, _, _ = _two_objects()
+        mask = sitk.Image(image.GetSize(), sitk.sitkUInt8)
+        mask[0:5, 0:5, 0:5] = 1
+        with pytest.raises(InputError, match=r"^corner\.nii\.gz: holds no foreground of its image"):
+            prepare(image, mask=mask, mask_name="corner.nii.gz")
 
     def test_large_images_are_shrunk_but_cover_the_same_space(self):
         image = _box_image()

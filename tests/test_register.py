@@ -108,6 +108,34 @@ class TestRoundTrip:
         np.testing.assert_allclose(homogeneous_matrix(from_paths.dpc_transform),
                                    homogeneous_matrix(from_images.dpc_transform), atol=1e-3)
 
+    def test_a_ct_padded_outside_its_field_of_view(self):
+        """The MNI head T1 to its pseudo-CT written as scanners write a CT: -3024 HU outside the circular field of
+        view. Otsu over the raw histogram split padding from air, took the field of view for the head, and three
+        poses ended 54 to 266 mm off."""
+        fixed, ct = CASES["mni-pseudo-ct"][2]()
+        widened = sitk.ConstantPad(ct, [15, 10, 0], [15, 10, 0], -1000)  # air around the head, as in a scanner's field
+        array = sitk.GetArrayFromImage(widened)
+        _, rows, columns = array.shape
+        y, x = np.mgrid[:rows, :columns]
+        array[:, np.hypot(x - (columns - 1) / 2, y - (rows - 1) / 2) > min(rows, columns) / 2] = -3024
+        padded = sitk.GetImageFromArray(array)
+        padded.CopyInformation(widened)
+        truth = random_similarity(np.random.default_rng(3), foreground_box(fixed)[0], max_shift_mm=30.0)
+        result = register(fixed, moved_copy(padded, truth))
+        assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 2.0
+
+    def test_a_few_hot_voxels(self):
+        """8 voxels at 300 times the maximum took Otsu's threshold (the foreground was 1 voxel); with the foreground
+        found, they still squeezed the head into the first bin of the refinement's histogram: 232, then 231 mm off."""
+        clean = mni_2mm()
+        array = sitk.GetArrayFromImage(clean).astype(np.float32)
+        array.flat[np.random.default_rng(0).choice(np.flatnonzero(array), 8, replace=False)] = 300 * array.max()
+        fixed = sitk.GetImageFromArray(array)
+        fixed.CopyInformation(clean)
+        truth = random_similarity(np.random.default_rng(4), foreground_box(clean)[0], max_shift_mm=30.0)
+        result = register(fixed, moved_copy(clean, truth))
+        assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(clean)) < 1.0
+
 
 @pytest.fixture(scope="module")
 def result() -> RegistrationResult:
