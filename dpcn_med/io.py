@@ -224,7 +224,7 @@ def _read_volume(name: str, max_bytes: int | None) -> sitk.Image:
     single_dicom = sitk.ImageFileReader.GetImageIOFromFileName(name) == "GDCMImageIO"
     _check_shape(name, reader.GetDimension(), reader.GetSize(), reader.GetNumberOfComponents(), single_dicom)
     _check_spacing(name, reader.GetSpacing())
-    _check_memory(name, reader.GetSize(), max_bytes)
+    check_memory(name, reader.GetSize(), max_bytes)
     _check_complete(Path(name))
     try:
         return reader.Execute()
@@ -276,7 +276,7 @@ def _read_series(name: str, folder: Path, uid: str | None, max_bytes: int | None
     reader.MetaDataDictionaryArrayUpdateOn()
     try:
         slice_size = _file_information(files[uid][0]).GetSize()
-        _check_memory(name, (*slice_size[:2], len(files[uid])), max_bytes)
+        check_memory(name, (*slice_size[:2], len(files[uid])), max_bytes)
         image = reader.Execute()
     except RuntimeError as error:
         raise InputError(f"{name}: DICOM series {uid} cannot be read ({_sitk_reason(error)}); check that its "
@@ -415,8 +415,9 @@ def _check_direction(name: str, direction: tuple[float, ...]) -> None:
                          "(sitk.Resample onto a grid with the identity direction)")
 
 
-def _check_memory(name: str, size: tuple[int, ...], max_bytes: int | None) -> None:
-    """Refuse a volume whose float32 working copies would not fit, judged from its header alone."""
+def check_memory(name: str, size: tuple[int, ...], max_bytes: int | None = None) -> None:
+    """Refuse a volume whose float32 working copies would not fit, judged from its size alone (before it is read
+    or made)."""
     voxels = math.prod(size)
     needed = voxels * np.dtype(np.float32).itemsize * WORKING_COPIES
     limit = _available_memory() if max_bytes is None else max_bytes
@@ -1068,6 +1069,8 @@ def read_mesh(path: str | os.PathLike) -> pyvista.PolyData:
                          "images as .nii.gz, .nrrd or .mha")
     if mesh.n_points == 0:
         raise InputError(f"{name}: holds no points (an empty or unreadable mesh); export it again")
+    if not np.isfinite(mesh.points).all():  # a NaN point became index -2**63 when voxelised
+        raise InputError(f"{name}: has points with NaN or infinite coordinates; export it again")
     if space == "RAS":
         mesh = mesh.transform(np.diag([-1.0, -1.0, 1.0, 1.0]), inplace=False)  # a copy; active normals follow
         if "SPACE" in mesh.field_data:

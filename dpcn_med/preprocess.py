@@ -12,6 +12,7 @@ import SimpleITK as sitk
 import torch
 from torch import Tensor
 
+from dpcn_med import io
 from dpcn_med.arguments import check_integer, check_pair, check_real
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import CanonicalGrid
@@ -383,7 +384,7 @@ def solver_slice(image: sitk.Image, size: int, *, fill: float = 0.55, spacing: f
     return tensor[:, :, 0].to(dtype)
 
 
-def voxelize(mesh: pyvista.DataSet, *, spacing: float = 1.0, margin: float = 10.0) -> sitk.Image:
+def voxelize(mesh: pyvista.DataSet, *, spacing: float = 1.0, margin: float = 10.0, name: str = "mesh") -> sitk.Image:
     """A surface mesh or point cloud (LPS, mm) as a binary float32 volume, so it registers like any image.
 
     A closed surface becomes its filled interior (pyvista's ``voxelize_binary_mask``); an open surface or a point
@@ -394,13 +395,20 @@ def voxelize(mesh: pyvista.DataSet, *, spacing: float = 1.0, margin: float = 10.
             :func:`dpcn_med.io.read_mesh` returns them, converting a file marked ``SPACE=RAS``).
         spacing: isotropic voxel size, mm.
         margin: empty border around the mesh's bounding box, mm.
+        name: what to call the mesh in messages (its file).
 
     Returns:
         Image with identity direction covering the mesh's bounds plus ``margin``; 1 inside, 0 outside.
+
+    Raises:
+        InputError: the volume would not fit in memory (one stray point 3 m away asked for 3101^3 voxels, 111 GiB).
     """
     bounds = np.asarray(mesh.bounds, dtype=np.float64).reshape(3, 2)
     origin = bounds[:, 0] - margin
     size = np.ceil((bounds[:, 1] + margin - origin) / spacing).astype(int) + 1
+    extent = " x ".join(f"{length:.4g}" for length in bounds[:, 1] - bounds[:, 0])
+    io.check_memory(f"{name} voxelised at {spacing:g} mm (its points span {extent} mm: a stray point, or not in mm?)",
+                    tuple(int(length) for length in size))
     surface = mesh.extract_surface(algorithm="dataset_surface") if mesh.n_cells else None
     closed = surface is not None and surface.n_faces > 0 and surface.is_manifold
     if closed:

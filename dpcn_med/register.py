@@ -294,7 +294,7 @@ def load_image(source: ImageLike, role: str = "image") -> sitk.Image:
     elif io.is_mesh_path(source):
         from dpcn_med.preprocess import voxelize
 
-        image = voxelize(io.read_mesh(source))
+        image = io.check_volume(voxelize(io.read_mesh(source), name=os.fspath(source)), os.fspath(source))
     else:
         image = io.read_image(source)
     if min(image.GetSize()) < MIN_LEVEL_VOXELS:  # the refinement's smoothing (ITK's recursive Gaussian) needs 4

@@ -479,6 +479,26 @@ class TestSurfaceMesh:
         # again at 1 mm, not the image itself.
         assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 2.0
 
+    @pytest.mark.parametrize(("points", "message"), [
+        # One stray point 3 m away asked for 3101^3 voxels (111 GiB): MemoryError or a machine out of memory.
+        ([[0, 0, 0], [10, 10, 10], [3000, 3000, 3000]],
+         r"cloud\.vtp voxelised at 1 mm \(its points span 3000 x 3000 x 3000 mm: a stray point, or not in mm\?\): "
+         r"size \(3021, 3021, 3021\)"),
+        ([[0, 0, 0], [10, 10, 10], [np.nan, 0, 0]], r"cloud\.vtp: has points with NaN or infinite coordinates"),
+    ])
+    def test_unusable_point_clouds_are_refused_by_name(self, tmp_path, points, message):
+        pv = pytest.importorskip("pyvista")
+        pv.PolyData(np.asarray(points, dtype=np.float64)).save(tmp_path / "cloud.vtp")
+        with pytest.raises(InputError, match=message):
+            register(mni_2mm(), tmp_path / "cloud.vtp")
+
+    def test_a_surface_saved_in_metres_is_refused_by_name(self, tmp_path):
+        """A head-sized sphere in metres: 0.2 mm across, no voxel inside at 1 mm; the error named no file."""
+        pv = pytest.importorskip("pyvista")
+        pv.Sphere(radius=0.1).save(tmp_path / "head.stl")
+        with pytest.raises(InputError, match=r"^.*head\.stl: "):
+            register(mni_2mm(), tmp_path / "head.stl")
+
 
 class TestStartup:
     def test_learning_free_registration_skips_slow_imports(self):
