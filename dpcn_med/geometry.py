@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from dpcn_med.arguments import check_integer, check_real, check_sequence
 from dpcn_med.errors import InputError
 
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -60,6 +61,12 @@ class CanonicalGrid:
     size: int
     spacing: float
     centre: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "size", check_integer("size", self.size, minimum=2))
+        object.__setattr__(self, "spacing", check_real("spacing", self.spacing, minimum=0.0, above=True))
+        object.__setattr__(self, "centre", tuple(check_real(f"centre[{axis}]", value) for axis, value
+                                                 in enumerate(check_sequence("centre", self.centre, length=3))))
 
     @property
     def origin(self) -> tuple[float, float, float]:

@@ -3,7 +3,6 @@ surface meshes and point clouds voxelised into images."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -28,6 +27,11 @@ OUTLIER_SPREADS = 10.0
 """Values more than this many ``OUTLIER_PERCENTILES`` ranges beyond them are outliers for Otsu's histogram."""
 UNIFORM_SPREAD = 1e-6
 """Foreground percentiles closer than this fraction of the image's range are one intensity."""
+MIN_SHRUNK_VOXELS = 4
+"""``shrink_factors`` leaves at least this many voxels along each axis (or the axis as it is, if shorter)."""
+SHRINK_SLACK = 1.3
+"""An axis up to this many times finer than its share of ``max_voxels`` is left as it is: 1.4x too many voxels is
+worth halving it, 1.2x is not."""
 
 
 @dataclass(frozen=True)
@@ -208,6 +212,7 @@ def normalize_intensity(image: sitk.Image, percentiles: tuple[float, float] = (1
     :func:`foreground_mask`, if already computed. A uniform foreground (a binary phantom, a voxelised mesh), whose
     percentiles coincide, maps to 1 and the image's minimum to 0: mapped from its own percentiles, it was all 0.
     """
+    percentiles = check_pair("percentiles", percentiles, minimum=0.0, maximum=100.0)
     array = sitk.GetArrayViewFromImage(image).astype(np.float32)
     inside = sitk.GetArrayFromImage(foreground_mask(image) if mask is None else mask).astype(bool)
     low, high = np.percentile(array[inside] if inside.any() else array, percentiles)
@@ -267,8 +272,11 @@ def canonical_grid(image: sitk.Image, size: int, *, fill: float = 0.5, spacing: 
             the solver's scale is physical.
         mask: the image's :func:`foreground_mask`, if already computed.
     """
+    if spacing is None:
+        fill = check_real("fill", fill, minimum=0.1, maximum=1.0)
+        size = check_integer("size", size, minimum=2)
     centre, diagonal = foreground_box(image, mask)
-    return CanonicalGrid(size=size, spacing=spacing or diagonal / (fill * size), centre=tuple(float(c) for c in centre))
+    return CanonicalGrid(size, diagonal / (fill * size) if spacing is None else spacing, tuple(map(float, centre)))
 
 
 def resample_to_grid(image: sitk.Image, grid: CanonicalGrid, *, default: float = 0.0, slice_only: bool = False
@@ -314,11 +322,19 @@ class PreparedImage:
 
 def shrink_factors(image: sitk.Image, max_voxels: int) -> list[int]:
     """Per-axis ``BinShrink`` factors bringing ``image`` near ``max_voxels``, shrinking fine axes more than coarse
-    ones (a 4 mm slice axis stays as it is next to 1 mm in-plane pixels)."""
-    overall = (np.prod(image.GetSize()) / max_voxels) ** (1 / 3)
-    finest = min(image.GetSpacing())
-    # ceil with slack: 1.4x too many voxels is worth halving the finest axes, 1.2x is not
-    return [max(1, math.ceil(overall * finest / spacing - 0.3)) for spacing in image.GetSpacing()]
+    ones (a 4 mm slice axis stays as it is next to 1 mm in-plane pixels), and no axis below
+    :data:`MIN_SHRUNK_VOXELS` voxels (a slab's few slices stay)."""
+    size, spacing = np.asarray(image.GetSize()), np.asarray(image.GetSpacing(), dtype=float)
+    largest = np.maximum(1, size // MIN_SHRUNK_VOXELS)
+    overall = (np.prod(size, dtype=float) / max_voxels) ** (1 / 3)
+    wanted = np.ceil(overall * spacing.min() / spacing - (SHRINK_SLACK - 1))
+    factors = np.clip(wanted, 1, largest).astype(int)
+    # Where an axis is too short or too coarse to take its share, the others shrink further, finest binned voxels
+    # first, until no more than the slack above lets through on a cube.
+    while np.prod(size // factors, dtype=float) > SHRINK_SLACK ** 3 * max_voxels and (factors < largest).any():
+        binned = np.where(factors < largest, spacing * factors, np.inf)
+        factors[np.argmin(binned)] += 1
+    return factors.tolist()
 
 
 def prepare(image: sitk.Image, *, modality: str = "auto", mask: sitk.Image | None = None,

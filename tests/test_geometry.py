@@ -204,6 +204,20 @@ class TestCanonicalGrid:
         grid = CanonicalGrid(size=64, spacing=2.5, centre=(10.0, -20.0, 30.0))
         assert grid.origin == (10.0 - 80.0, -20.0 - 80.0, 30.0 - 80.0)
 
+    def test_numbers_are_plain_floats(self):
+        grid = CanonicalGrid(np.int64(8), np.float32(1.5), np.array([1, 2, 3]))
+        assert (type(grid.size), type(grid.spacing), grid.centre) == (int, float, (1.0, 2.0, 3.0))
+
+    @pytest.mark.parametrize(("arguments", "message"), [
+        ((1, 1.0, (0, 0, 0)), r"^size is 1; expected an integer >= 2$"),
+        ((8, -1.0, (0, 0, 0)), r"^spacing is -1\.0; expected a finite number > 0$"),
+        ((8, 1.0, (0, 0)), r"^centre is \(0, 0\): 2 values; expected 3$"),
+        ((8, 1.0, (0, float("inf"), 0)), r"^centre\[1\] is inf; expected a finite number$"),
+    ])
+    def test_bad_values_are_named(self, arguments, message):
+        with pytest.raises(InputError, match=message):
+            CanonicalGrid(*arguments)
+
 
 def _similarity(seed: int = 3) -> sitk.Similarity3DTransform:
     rng = np.random.default_rng(seed)

@@ -224,6 +224,21 @@ class TestSolverGrid:
         assert plane.shape == (1, 1, 32, 32)
         torch.testing.assert_close(plane[0, 0], cube[0, 0, grid_centre(32)])
 
+    @pytest.mark.parametrize(("arguments", "message"), [
+        ({"spacing": 0.0}, r"^spacing is 0\.0; expected a finite number > 0$"),  # was taken for None: fill's spacing
+        ({"spacing": float("nan")}, r"^spacing is nan; expected a finite number > 0$"),  # was an all-zero cube
+        ({"fill": 0.0}, r"^fill is 0\.0; expected a finite number >= 0\.1 and <= 1$"),  # was ZeroDivisionError
+        ({"size": 16.0}, r"^size is 16\.0 \(float\); expected an integer >= 2$"),
+    ])
+    def test_bad_grid_arguments_are_named(self, arguments, message):
+        with pytest.raises(InputError, match=message):
+            solver_grid(_box_image(), **{"size": 16, **arguments})
+
+    def test_reversed_percentiles_are_refused(self):
+        """They clipped nearly every voxel to 0 or 1."""
+        with pytest.raises(InputError, match=r"^percentiles is \(99\.0, 1\.0\); expected \(low, high\) with 0 <= "):
+            normalize_intensity(_box_image(), (99.0, 1.0))
+
     def test_to_tensor_rejects_2d_images(self):
         with pytest.raises(InputError, match="image is 2-D"):
             to_tensor(sitk.Image([8, 8], sitk.sitkFloat32))
@@ -317,6 +332,25 @@ class TestShrinkFactors:
 
     def test_small_images_untouched(self):
         assert shrink_factors(_box_image(), 2_000_000) == [1, 1, 1]
+
+    def test_a_few_slices_stay_and_the_other_axes_take_their_share(self):
+        image = sitk.Image([4000, 4000, 2], sitk.sitkUInt8)
+        factors = shrink_factors(image, 2_000_000)
+        assert factors[2] == 1
+        assert 2_000_000 <= np.prod(np.array(image.GetSize()) // factors) <= 1.3 ** 3 * 2_000_000
+
+    def test_coarse_slices_do_not_leave_too_many_voxels(self):
+        image = sitk.Image([4000, 4000, 8], sitk.sitkUInt8)
+        image.SetSpacing((0.5, 0.5, 5.0))
+        factors = shrink_factors(image, 2_000_000)
+        assert factors[2] == 1 and np.prod(np.array(image.GetSize()) // factors) <= 1.3 ** 3 * 2_000_000
+
+    def test_a_thin_wide_image_is_prepared(self):
+        array = np.zeros((2, 200, 200), dtype=np.float32)
+        array[:, 50:150, 60:140] = 100.0
+        prepared = prepare(sitk.GetImageFromArray(array), modality="mr", config=Preprocessing(max_voxels=1000))
+        assert prepared.image.GetSize()[2] == 2 and np.prod(prepared.image.GetSize()) <= 1.3 ** 3 * 1000
+        np.testing.assert_allclose(prepared.centre, (99.5, 99.5, 0.5), atol=3.0)
 
 
 class TestPairGrids:
