@@ -108,6 +108,16 @@ def clip_outliers(image: sitk.Image) -> sitk.Image:
     return image if bounds is None else sitk.Clamp(image, sitk.sitkFloat32, *bounds)
 
 
+def histogram_values(image: sitk.Image) -> sitk.Image:
+    """``image`` as a histogram of its intensities should see it (display windows, contour levels), float32: a CT's
+    padding below ``LOWEST_HU`` raised to air, then far outliers clipped (:func:`clip_outliers`). Counted as they
+    are, -2048 HU padding pulled a CT's Otsu levels to -236 HU and 8 hot voxels put every level above the anatomy."""
+    values = sitk.Cast(image, sitk.sitkFloat32)
+    if sitk.GetArrayViewFromImage(values).min() < LOWEST_HU:
+        values = sitk.Clamp(values, sitk.sitkFloat32, LOWEST_HU)
+    return clip_outliers(values)
+
+
 def _otsu(image: sitk.Image, counted: np.ndarray | None) -> tuple[sitk.Image, float]:
     """Otsu's threshold over the ``counted`` voxels (all when ``None``), far outliers clipped: the counted voxels
     above it (uint8, 1) and the threshold."""

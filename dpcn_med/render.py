@@ -15,7 +15,7 @@ import SimpleITK as sitk
 from dpcn_med import io
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import homogeneous_matrix
-from dpcn_med.preprocess import foreground_mask
+from dpcn_med.preprocess import foreground_mask, histogram_values
 
 if TYPE_CHECKING:
     import pyvista
@@ -56,10 +56,11 @@ def surface(image: sitk.Image, level: float | None = None, *, target_cells: int 
 
 
 def brightest_tissue_level(image: sitk.Image) -> float:
-    """The highest of three multi-level Otsu thresholds: bone on a CT, the brightest tissue class on an MR."""
+    """The highest of three multi-level Otsu thresholds (of :func:`~dpcn_med.preprocess.histogram_values`): bone on
+    a CT, the brightest tissue class on an MR."""
     otsu = sitk.OtsuMultipleThresholdsImageFilter()
     otsu.SetNumberOfThresholds(3)
-    otsu.Execute(image)
+    otsu.Execute(histogram_values(image))
     return float(max(otsu.GetThresholds()))
 
 

@@ -16,7 +16,7 @@ import SimpleITK as sitk
 from dpcn_med import __version__
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import grid_centre, slicer_to_parent_ras
-from dpcn_med.preprocess import foreground_box
+from dpcn_med.preprocess import foreground_box, foreground_mask, histogram_values
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -166,8 +166,9 @@ def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
         InputError: ``path`` does not end in ``.png``, or an image is not 3-D.
 
     Notes:
-        Greyscale windows are each image's 1st..99th percentiles. Contours are drawn at the moving image's two
-        multi-level Otsu thresholds (typically the outline of the object and a boundary inside it).
+        Greyscale windows are the 1st..99th percentiles of each image's foreground. Contours are drawn at the moving
+        image's two multi-level Otsu thresholds (typically the outline of the object and a boundary inside it), a
+        CT's padding and far outliers left out.
     """
     path = Path(path)
     if path.suffix.lower() != ".png":
@@ -181,12 +182,13 @@ def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
     from dpcn_med.io import atomic_output
 
     fixed_small, moving_small = _subsampled(fixed), _subsampled(moving)
+    fixed_foreground = foreground_mask(fixed_small)
     if centre is None:
-        centre = foreground_box(fixed_small)[0]
+        centre = foreground_box(fixed_small, fixed_foreground)[0]
     if extent is None:
         extent = max(size * spacing for size, spacing in zip(fixed.GetSize(), fixed.GetSpacing()))
-    fixed_window = _window(fixed_small)
-    moving_window = _window(moving_small)
+    fixed_window = _window(fixed_small, fixed_foreground)
+    moving_window = _window(moving_small, foreground_mask(moving_small))
     levels = _contour_levels(moving_small)
 
     # NaN outside each image's field of view: no contour runs along its edge, and it shows black in every panel.
@@ -220,7 +222,8 @@ def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
             spine.set_color("#555555")
     centre_text = ", ".join(f"{c:.1f}" for c in centre)
     subtitle = f"planes through ({centre_text}) mm LPS, field of view {extent:.0f} mm"
-    figure.suptitle(f"{title}\n{subtitle}" if title else subtitle, color="white", fontsize=13)
+    # parse_math off: a file name holding two $ was read as TeX and a parse error lost the whole registration.
+    figure.suptitle(f"{title}\n{subtitle}" if title else subtitle, color="white", fontsize=13, parse_math=False)
     with atomic_output(path) as temporary:
         figure.savefig(temporary, format="png", dpi=OVERVIEW_WIDTH_PX / width_in, facecolor="black")
 
@@ -231,9 +234,13 @@ def _subsampled(image: sitk.Image) -> sitk.Image:
     return sitk.Shrink(image, factors) if max(factors) > 1 else image
 
 
-def _window(image: sitk.Image) -> tuple[float, float]:
-    """Display window: the :data:`WINDOW_PERCENTILES` of the image's intensities, never empty."""
-    low, high = np.percentile(sitk.GetArrayViewFromImage(image), WINDOW_PERCENTILES)
+def _window(image: sitk.Image, foreground: sitk.Image) -> tuple[float, float]:
+    """Display window: the :data:`WINDOW_PERCENTILES` of the intensities on the image's ``foreground`` (of all, when
+    it is empty), never empty. Over the whole image, a small object in a large field of view got (0, 1e-6), every
+    tissue white, and a CT's -2048 HU padding pressed soft tissue into 7% of the grey range."""
+    values = sitk.GetArrayViewFromImage(image)
+    inside = sitk.GetArrayViewFromImage(foreground).astype(bool)
+    low, high = np.percentile(values[inside] if inside.any() else values, WINDOW_PERCENTILES)
     return float(low), float(max(high, low + 1e-6))
 
 
@@ -244,10 +251,11 @@ def _normalised(plane: np.ndarray, window: tuple[float, float]) -> np.ndarray:
 
 
 def _contour_levels(image: sitk.Image) -> list[float]:
-    """The multi-level Otsu thresholds of ``image`` (one per contour colour), strictly increasing."""
+    """The multi-level Otsu thresholds of ``image``'s :func:`~dpcn_med.preprocess.histogram_values` (one per contour
+    colour), strictly increasing."""
     otsu = sitk.OtsuMultipleThresholdsImageFilter()
     otsu.SetNumberOfThresholds(len(CONTOUR_COLOURS))
-    otsu.Execute(image)
+    otsu.Execute(histogram_values(image))
     return sorted(set(otsu.GetThresholds()))  # a two-valued image gives repeated thresholds
 
 

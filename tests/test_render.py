@@ -8,6 +8,7 @@ import pytest
 import SimpleITK as sitk
 
 from dpcn_med.evaluation import moved_copy, random_similarity
+from tests.conftest import shared_path
 
 pytest.importorskip("pyvista", reason="pyvista (the mesh extra) is not installed")
 from dpcn_med import render  # noqa: E402  (needs pyvista, checked above)
@@ -50,3 +51,10 @@ def test_before_and_after_panels(tmp_path):
     left, right = picture[:, :200, :3], picture[:, 200:, :3]
     assert left.std() > 0.01 and right.std() > 0.01 and not np.allclose(left, right)
     assert [p.name for p in tmp_path.iterdir()] == ["render.png"]  # written atomically, nothing left over
+
+
+
+def test_the_brightest_level_finds_bone_beside_padding():
+    """The MRI-DIR CT's -2048 HU padding outside its field of view had pulled the 'bone' level to -236 HU."""
+    image = sitk.ReadImage(str(shared_path("mridir/mridir_ct_3p0mm.nii.gz")))
+    assert 200.0 < render.brightest_tissue_level(image) < 500.0

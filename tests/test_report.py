@@ -9,7 +9,8 @@ import pytest
 import SimpleITK as sitk
 
 from dpcn_med.errors import InputError
-from dpcn_med.report import orthogonal_planes, overview_figure
+from dpcn_med.preprocess import foreground_mask
+from dpcn_med.report import _contour_levels, _window, orthogonal_planes, overview_figure
 
 CENTRE = np.array([10.0, -20.0, 30.0])
 PIXELS = 64
@@ -111,3 +112,31 @@ class TestOverviewFigure:
         image = _oblique_phantom()
         with pytest.raises(InputError, match=r"must end in \.png"):
             overview_figure(image, image, sitk.Transform(), tmp_path / "overview.jpg")
+
+    def test_a_title_with_dollar_signs_is_plain_text(self, tmp_path):
+        """matplotlib read 'a$_$b' as TeX and raised: a file name lost the whole registration."""
+        image = _oblique_phantom()
+        overview_figure(image, image, sitk.Transform(), tmp_path / "o.png", title="moving_$_$.nii.gz onto x$\\q$")
+        assert (tmp_path / "o.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def _shell_and_core(size: int = 128) -> sitk.Image:
+    """A ball of 100 (radius 12 voxels) around a core of 300 (radius 6): 0.34% of the volume."""
+    z, y, x = np.mgrid[:size, :size, :size] - size / 2
+    radius = np.sqrt(x ** 2 + y ** 2 + z ** 2)
+    return sitk.GetImageFromArray((100.0 * (radius < 12) + 200.0 * (radius < 6)).astype(np.float32))
+
+
+class TestDisplayStatistics:
+    def test_the_window_spans_a_small_object(self):
+        """Over the whole image the window was (0, 1e-6): shell and core both white."""
+        image = _shell_and_core()
+        low, high = _window(image, foreground_mask(image))
+        assert low <= 100.0 < high and high >= 250.0
+
+    def test_contour_levels_leave_out_padding_and_hot_voxels(self):
+        array = sitk.GetArrayFromImage(_shell_and_core(64)) - 1000.0  # air -1000, shell -900, core -700
+        array[:, :, :6] = -2048.0  # a CT's padding beside its field of view
+        array[32, 32, 50:58] = 3.0e5  # 8 hot voxels
+        levels = _contour_levels(sitk.GetImageFromArray(array))
+        assert len(levels) == 2 and -1000.0 < levels[0] < -900.0 < levels[1] < -700.0
