@@ -245,6 +245,10 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
     _refuse_overwriting_inputs({p: "an input of this run" for p in (fixed, moving, fixed_mask, moving_mask)
                                 if p is not None}, [output / name for name in OUTPUT_NAMES])
     check_output_folder(output)
+    for name in OUTPUT_NAMES:
+        if (output / name).is_dir() and not (output / name).is_symlink():
+            raise InputError(f"{output / name}: exists and is a folder, where {name} is to be written; move it or "
+                             "choose another output folder")
 
     outputs = written_outputs(args)
     started, begun = time.perf_counter(), time.time()
@@ -256,7 +260,7 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
     low = not result.confidence >= args.min_confidence  # NaN is never confident
     report = registration_report(result, fixed=fixed, moving=moving, fixed_mask=fixed_mask, moving_mask=moving_mask,
                                  min_confidence=args.min_confidence, outputs=list(outputs))
-    report["timings_s"]["total"] = time.perf_counter() - started
+    report["timings_s"] = {**report["timings_s"], "total": time.perf_counter() - started}  # not result.timings
     report["request"] = _request(fixed, moving, fixed_mask, moving_mask, args)
 
     # Stage everything in a hidden folder inside the output folder (one file system, so the moves are renames), then
@@ -281,11 +285,13 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
                             f"overlap {result.overlap:.0%}",
                             centre=result.fixed_grid.centre)  # the fixed foreground centre, already found
         io.write_json(report, staging / "report.json")
-        for name in set(OUTPUT_NAMES) - set(outputs):  # an earlier run's, which would read as this one's
-            (output / name).unlink(missing_ok=True)
-        for name in outputs:  # report.json last: it marks the pair as finished
-            os.replace(staging / name, output / name)
-        finished = True
+        with io.interrupts_deferred():  # Ctrl-C between two renames would leave two runs' files side by side
+            (output / "report.json").unlink(missing_ok=True)  # first: killed outright, the pair reads as unfinished
+            for name in set(OUTPUT_NAMES) - set(outputs):  # an earlier run's, which would read as this one's
+                (output / name).unlink(missing_ok=True)
+            for name in outputs:  # report.json last: it marks the pair as finished
+                os.replace(staging / name, output / name)
+            finished = True
     finally:
         if staging is not None:
             shutil.rmtree(staging, ignore_errors=True)

@@ -21,6 +21,8 @@ import math
 import os
 import re
 import secrets
+import signal
+import threading
 import zlib
 from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
@@ -721,6 +723,26 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
+
+
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold Ctrl-C and SIGTERM (which the command line turns into ``KeyboardInterrupt``) until the block ends, then
+    raise: for outputs that must change together (a checkpoint's two files, a registration's set of files). Outside
+    the main thread, where Python delivers no signal and handlers cannot be set, the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    signals = (signal.SIGINT, signal.SIGTERM)
+    previous = [signal.signal(number, lambda number, frame: received.append(number)) for number in signals]
+    try:
+        yield
+    finally:
+        for number, handler in zip(signals, previous, strict=True):
+            signal.signal(number, handler)
+    if received:
+        raise KeyboardInterrupt
 
 
 def _full_suffix(name: str) -> str:

@@ -234,7 +234,9 @@ def check_options(*, mode: str, model: str | os.PathLike | None, bandwidth: int,
 
 
 def describe_transform(fixed_to_moving: sitk.Transform) -> dict:
-    """A transform as JSON: ITK name, parameters, centre, the 4x4 LPS matrix, rotation angle and scale."""
+    """A transform as JSON: ITK name, parameters, centre, the 4x4 LPS matrix, its rotation angle, scale and
+    ``translation_mm``, the matrix's offset (where the LPS origin goes; ITK's translation parameters are about the
+    centre)."""
     matrix = homogeneous_matrix(fixed_to_moving)
     scale, rotation = scale_and_rotation(matrix[:3, :3])
     angle = float(np.degrees(rotation_angle(torch.from_numpy(rotation)).item()))

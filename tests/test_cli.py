@@ -410,6 +410,45 @@ class TestFailureLeavesNothing:
         assert code == 130 and "interrupted" in capsys.readouterr().err
         assert not (tmp_path / "out").exists() and signal.getsignal(signal.SIGTERM) == handler
 
+    def test_terminated_while_moving_into_place(self, pair, tmp_path, monkeypatch, capsys):
+        """A signal between two renames waited for the last: before, the folder held the earlier run's report.json
+        beside this run's first transforms."""
+        import os
+        import signal
+
+        import dpcn_med.cli
+
+        output = tmp_path / "out"
+        assert main(["register", str(pair[0]), str(pair[0]), "-o", str(output), "--no-refine", "--no-overview",
+                     "--no-resampled"]) == 0
+        renamed, rename = [], os.replace
+
+        def interrupted(source, target):
+            if Path(target).parent == output:  # a move into place, not an atomic write into the staging folder
+                renamed.append(Path(target).name)
+                if len(renamed) == 2:
+                    os.kill(os.getpid(), signal.SIGTERM)
+            rename(source, target)
+
+        monkeypatch.setattr(dpcn_med.cli.os, "replace", interrupted)
+        handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+        code = main(["register", str(pair[0]), str(pair[1]), "-o", str(output), "--no-refine", "--no-overview",
+                     "--no-resampled"])
+        assert code == 130 and "interrupted" in capsys.readouterr().err
+        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers
+        assert renamed[-1] == "report.json" and json.loads((output / "report.json").read_text())["inputs"]["moving"][
+            "path"].endswith("moving.nrrd")
+        matrix = np.asarray(json.loads((output / "report.json").read_text())["final"]["fixed_to_moving_lps"])
+        written = sitk.ReadTransform(str(output / "transform.tfm"))
+        np.testing.assert_allclose(written.TransformPoint((1.0, 2.0, 3.0)), matrix[:3, :3] @ (1, 2, 3) + matrix[:3, 3],
+                                   atol=1e-6)
+
+    def test_an_output_name_taken_by_a_folder_is_refused_before_the_work(self, pair, tmp_path, capsys):
+        (tmp_path / "out" / "report.json").mkdir(parents=True)
+        code = main(["register", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "out"), "--no-refine"])
+        assert code == 2 and "report.json: exists and is a folder" in capsys.readouterr().err
+        assert [p.name for p in (tmp_path / "out").iterdir()] == ["report.json"]
+
 
 class TestBatch:
     def test_resumable_with_summary(self, pair, tmp_path, capsys):

@@ -382,11 +382,9 @@ def _damage_tensors(run: Path, drop: bool) -> None:
 class TestResume:
     def test_a_signal_while_saving_waits_for_the_pair(self):
         """SIGTERM (or Ctrl-C) between the two files of a checkpoint would leave new weights beside an old step."""
-        from dpcn_med.train import loop
-
         written, before = [], signal.getsignal(signal.SIGTERM)
         with pytest.raises(KeyboardInterrupt):
-            with loop._interrupts_deferred():
+            with io.interrupts_deferred():
                 os.kill(os.getpid(), signal.SIGTERM)
                 written.append("weights")
                 written.append("description")

@@ -12,14 +12,10 @@ pairs; rank 0 validates, logs and writes). Everything a run writes goes to ``con
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
-import signal
-import threading
 import time
-from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -153,29 +149,10 @@ def save_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, step: int, co
             else:
                 scalars[f"{index}.{name}"] = value
     weights, description = _checkpoint_paths(Path(config.output))
-    with _interrupts_deferred():  # each file is atomic; the pair must be too (load_checkpoint checks the step)
+    with io.interrupts_deferred():  # each file is atomic; the pair must be too (load_checkpoint checks the step)
         io.write_tensors(tensors, weights, metadata={"step": str(step)})
         io.write_json({"step": step, "param_groups": state["param_groups"], "optimiser_scalars": scalars,
                        "config": config.to_json(), "rows": rows, "version": __version__}, description)
-
-
-@contextlib.contextmanager
-def _interrupts_deferred() -> Iterator[None]:
-    """Hold Ctrl-C and SIGTERM (which the command line turns into ``KeyboardInterrupt``) until the block ends, then
-    raise; outside the main thread, where handlers cannot be set, run the block as it is."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    received: list[int] = []
-    signals = (signal.SIGINT, signal.SIGTERM)
-    previous = [signal.signal(number, lambda number, frame: received.append(number)) for number in signals]
-    try:
-        yield
-    finally:
-        for number, handler in zip(signals, previous, strict=True):
-            signal.signal(number, handler)
-    if received:
-        raise KeyboardInterrupt
 
 
 _ABSENT = object()
