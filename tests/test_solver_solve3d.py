@@ -159,6 +159,18 @@ class TestDegenerateInputs:
         assert result.scale.item() == pytest.approx(1.0)
         torch.testing.assert_close(result.translation, torch.zeros(1, 3))
 
+    @pytest.mark.parametrize("value", [0.0, 5.0])
+    def test_constant_grids_give_finite_gradients(self, value):
+        """Norms of zero through sqrt gave NaN gradients (the temperatures', the volumes'): one such pair made a
+        training step NaN."""
+        fixed = torch.full((1, 1, 32, 32, 32), value, requires_grad=True)
+        moving = torch.full((1, 1, 32, 32, 32), value, requires_grad=True)
+        temperatures = [torch.tensor(t, requires_grad=True) for t in (0.02, 0.02, 0.01)]
+        result = solve(fixed, moving, refine=False, temperatures=StageTemperatures(*temperatures))
+        (result.rotation.sum() + result.scale.sum() + result.translation.sum() + result.confidence.sum()).backward()
+        for gradient in (fixed.grad, moving.grad, *(t.grad for t in temperatures)):
+            assert torch.isfinite(gradient).all()
+
 
 def _success(name: str, bandwidth: int, count: int, seed: int, mode: str, limits: tuple[float, float, float],
              dtype: torch.dtype = torch.float32) -> list[tuple[float, float, float]]:

@@ -77,6 +77,11 @@ class TestToSphere:
         correlation = (fixed_sphere * moving_sphere * weights[:, None]).sum() / (weights.sum() * 32)
         assert correlation.item() > 0.95
 
-    def test_constant_sphere_normalises_to_zero(self):
-        weights = quadrature_weights(4, dtype=torch.float64)
-        assert normalize_sphere(torch.full((1, 8, 8), 3.0, dtype=torch.float64), weights).abs().max() < 1e-12
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    @pytest.mark.parametrize("bandwidth", [4, 8, 16, 32])
+    @pytest.mark.parametrize("value", [1.0, 3.0, -87.3365])  # -87.3: an empty volume's floored log in float32
+    def test_constant_sphere_normalises_to_zero(self, dtype, bandwidth, value):
+        """Rounding left by the centring was scaled to unit norm: up to 0.99 at B = 32, where 0 was promised."""
+        weights = quadrature_weights(bandwidth, dtype=dtype)
+        constant = torch.full((1, 2 * bandwidth, 2 * bandwidth), value, dtype=dtype)
+        assert normalize_sphere(constant, weights).abs().max() < 10 * torch.finfo(dtype).eps ** 0.5

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import re
 import shutil
@@ -291,6 +292,32 @@ class TestTrain:
         rows = log_rows(output)
         assert [int(r["step"]) for r in rows if r["kind"] == "train"] == [1, 2, 3, 4, 5, 6]
         assert json.loads((output / "checkpoint.json").read_text())["step"] == 6
+
+    def test_a_step_with_non_finite_gradients_is_skipped(self, tmp_path, monkeypatch):
+        """A NaN gradient (a degenerate pair) made every weight NaN; the step is skipped and counted."""
+        from dpcn_med.train import loop
+
+        losses, calls = loop.pose_loss, []
+
+        def nan_at_the_second_step(result, target):
+            calls.append(1)
+            terms = losses(result, target)
+            return {**terms, "total": terms["total"] * math.nan} if len(calls) == 2 else terms
+
+        monkeypatch.setattr(loop, "pose_loss", nan_at_the_second_step)
+        model, _ = train(tiny_config(tmp_path))
+        assert all(torch.isfinite(p).all() for p in model.parameters())
+        rows = [r for r in log_rows(tmp_path / "run") if r["kind"] == "train"]
+        assert [int(r["skipped_steps"]) for r in rows] == [0, 1, 0, 0]
+
+    def test_steps_that_keep_failing_stop_the_run(self, tmp_path, monkeypatch):
+        from dpcn_med.train import loop
+
+        losses = loop.pose_loss
+        monkeypatch.setattr(loop, "pose_loss", lambda *a: {**losses(*a), "total": losses(*a)["total"] * math.nan})
+        monkeypatch.setattr(loop, "MAX_SKIPPED_IN_A_ROW", 3)
+        with pytest.raises(InputError, match=r"^training: 3 steps in a row gave non-finite gradients \(at step 3\)"):
+            train(tiny_config(tmp_path))
 
     def test_real_pairs_from_folders_train_and_validate(self, tmp_path):
         """Folders of registered pairs (.tfm ground truth) feed every step here and are scored at validation."""

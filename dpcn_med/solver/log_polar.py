@@ -89,7 +89,8 @@ def log_polar_rotation_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, 
     # (the taper over log r, the interpolation of the resampled grids) into a spike that pins small rotations to zero
     # (measured on the MRI-DIR T2: a 1.7-degree rotation found as 0).
     surface, spectrum = phase_correlation(fixed, moving, 2, whiten=False)
-    energy = (fixed.square().sum((-2, -1)) * moving.square().sum((-2, -1))).sqrt() + torch.finfo(fixed.dtype).eps
+    energy = (torch.linalg.vector_norm(fixed, dim=(-2, -1)) * torch.linalg.vector_norm(moving, dim=(-2, -1))
+              + torch.finfo(fixed.dtype).eps)  # vector_norm: its gradient at zero is 0, sqrt's is NaN
     surface, spectrum = surface / energy[:, None, None], spectrum / energy[:, None, None]
     peak = soft_argmax(surface, temperature, 2)
     shift = refine_peak(spectrum, peak.index, tuple(fixed.shape[-2:]), upsample=upsample)[0] if refine else peak.shift

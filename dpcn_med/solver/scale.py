@@ -87,8 +87,11 @@ def log_polar_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, rotation:
     moving_spec = torch.fft.rfft(moving, n=2 * samples, dim=-1)  # (batch, K, 2b, 2b, R + 1)
     weights = quadrature_weights(directions_bandwidth, device=radii.device, dtype=radii.dtype)[:, None]
     spectrum = (moving_spec * fixed_spec.conj() * weights[..., None]).sum((2, 3)).flatten(0, 1)  # (batch K, R + 1)
-    energy = ((fixed ** 2).sum(-1) * weights).sum((1, 2))[:, None] * ((moving ** 2).sum(-1) * weights).sum((2, 3))
-    spectrum = spectrum / (energy.sqrt().flatten() + torch.finfo(energy.dtype).eps)[:, None]
+    # norms through vector_norm: its gradient at zero (an empty volume's profiles) is 0, sqrt's is NaN
+    root_w = weights.sqrt()[..., None]
+    norms = (torch.linalg.vector_norm(fixed * root_w, dim=(-3, -2, -1))[:, None]
+             * torch.linalg.vector_norm(moving * root_w, dim=(-3, -2, -1)))  # (batch, K)
+    spectrum = spectrum / (norms.flatten() + torch.finfo(norms.dtype).eps)[:, None]
     sizes = (2 * samples,)
     step = log_radius_step(band, samples)
     reach = min(samples - 1, math.ceil(math.log(max_scale) / step))  # lags of plausible scales only

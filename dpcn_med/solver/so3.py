@@ -130,7 +130,8 @@ def so3_correlation(moving_coeffs: Tensor, fixed_coeffs: Tensor, bandwidth: int)
     padded[..., :cols] = spectrum
     padded = spectrum.new_zeros(batch, betas, columns, bandwidth + 1).index_copy(2, orders, padded)
     correlation = torch.fft.irfft2(padded, s=(columns, columns), norm="forward")  # (batch, beta, alpha, gamma)
-    norm = moving_coeffs.abs().square().sum((-2, -1)).sqrt() * fixed_coeffs.abs().square().sum((-2, -1)).sqrt()
+    # vector_norm: its gradient at zero (an empty volume's sphere) is 0, sqrt's is NaN
+    norm = torch.linalg.vector_norm(moving_coeffs, dim=(-2, -1)) * torch.linalg.vector_norm(fixed_coeffs, dim=(-2, -1))
     correlation = correlation / (norm + torch.finfo(correlation.dtype).eps)[:, None, None, None]
     return correlation.permute(0, 2, 1, 3)
 

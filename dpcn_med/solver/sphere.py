@@ -130,8 +130,14 @@ def normalize_sphere(sphere: Tensor, weights: Tensor) -> Tensor:
     """
     w = sphere_mean_weights(weights, sphere.shape[-1])
     centred = sphere - (sphere * w).sum((-2, -1), keepdim=True)
-    norm = ((centred ** 2) * w).sum((-2, -1), keepdim=True).sqrt()
-    return centred / (norm + torch.finfo(sphere.dtype).eps)
+    root_w = w.sqrt()  # norms through vector_norm: its gradient at zero is 0, sqrt's is NaN
+    norm = torch.linalg.vector_norm(centred * root_w, dim=(-2, -1), keepdim=True)
+    # What centring leaves of a constant sphere is rounding, a few eps of its values: a floor of sqrt(eps) times
+    # the sphere's own size maps it to ~sqrt(eps), not to unit-norm noise. A real sphere's centred norm is far
+    # above the floor, and the correlation's own normalisation cancels the scale either way.
+    floor = torch.finfo(sphere.dtype).eps ** 0.5 * torch.linalg.vector_norm(sphere * root_w, dim=(-2, -1),
+                                                                             keepdim=True)
+    return centred / (norm + floor + torch.finfo(sphere.dtype).tiny)
 
 
 def sample_sphere(sphere: Tensor, directions: Tensor) -> Tensor:

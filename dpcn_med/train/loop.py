@@ -49,8 +49,10 @@ CHECKPOINT_ENTRIES = {"step": int, "param_groups": list, "optimiser_scalars": di
 """What ``checkpoint.json`` holds, and the JSON type of each."""
 
 LOSS_TERMS = ("total", "rotation_kl", "rotation_l1", "scale_kl", "scale_l1", "translation_kl", "translation_l1")
+MAX_SKIPPED_IN_A_ROW = 20
+"""Steps in a row with non-finite gradients after which training stops: it has diverged, not met one bad pair."""
 SCORES = ("success", "rotation_error_deg", "translation_error_vox")
-COLUMNS = ("step", "kind", "learning_rate", *LOSS_TERMS, "pairs_per_second", *SCORES,
+COLUMNS = ("step", "kind", "learning_rate", *LOSS_TERMS, "skipped_steps", "pairs_per_second", *SCORES,
            *(f"real_{name}" for name in SCORES))
 
 
@@ -331,6 +333,7 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
     bar = tqdm(total=config.optimiser.steps, initial=step, disable=not process.main, desc="training",
                dynamic_ncols=True)
     started, pairs_since, clock = time.perf_counter(), 0, time.perf_counter()
+    skipped, skipped_in_a_row = 0, 0
     while step < config.optimiser.steps:
         rate = learning_rate(step, config)
         for group in optimiser.param_groups:
@@ -349,9 +352,20 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
         terms = pose_loss(result, target)
         optimiser.zero_grad(set_to_none=True)
         terms["total"].backward()
-        if config.optimiser.gradient_clip > 0:
-            torch.nn.utils.clip_grad_norm_(model.parameters(), config.optimiser.gradient_clip)
-        optimiser.step()
+        # One non-finite gradient (a degenerate pair: an empty crop, a constant volume) would make every weight NaN
+        # at the step; such a step is skipped, and counted (its gradients are all-reduced: every process agrees).
+        norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.optimiser.gradient_clip
+                                              if config.optimiser.gradient_clip > 0 else math.inf)
+        if torch.isfinite(norm):
+            optimiser.step()
+            skipped_in_a_row = 0
+        else:
+            skipped += 1
+            skipped_in_a_row += 1
+            if skipped_in_a_row == MAX_SKIPPED_IN_A_ROW:
+                raise InputError(f"training: {MAX_SKIPPED_IN_A_ROW} steps in a row gave non-finite gradients (at "
+                                   f"step {step + 1}); the training has diverged: lower optimiser.learning_rate, or "
+                                   "check the training volumes for empty or constant ones")
         step += 1
         pairs_since += config.optimiser.batch_size * process.world_size
         bar.update(1)
@@ -362,9 +376,9 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
                 values /= process.world_size
             now = time.perf_counter()
             row = {"step": step, "kind": "train", "learning_rate": rate,
-                   **{t: v.item() for t, v in zip(LOSS_TERMS, values)},
+                   **{t: v.item() for t, v in zip(LOSS_TERMS, values)}, "skipped_steps": skipped,
                    "pairs_per_second": pairs_since / (now - clock)}
-            pairs_since, clock = 0, now
+            pairs_since, clock, skipped = 0, now, 0
             if process.main:
                 rows.append(row)
                 bar.set_postfix(loss=f"{row['total']:.3g}")
