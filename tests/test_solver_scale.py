@@ -21,10 +21,10 @@ class TestDetrend:
 
 
 def _scale_of(fixed: torch.Tensor, moving: torch.Tensor, rotation: torch.Tensor, refine: bool = True,
-              temperature: torch.Tensor | float = 0.02) -> torch.Tensor:
+              temperature: torch.Tensor | float = 0.02, max_scale: float = 2.0) -> torch.Tensor:
     estimate = log_polar_scale(magnitude_spectrum(fixed[:, 0], 3, 0.25), magnitude_spectrum(moving[:, 0], 3, 0.25),
                                rotation[None, None].to(fixed.dtype), (0.05, 0.8), 64, temperature,
-                               directions_bandwidth=8, max_scale=2.0, refine=refine, upsample=16)
+                               directions_bandwidth=8, max_scale=max_scale, refine=refine, upsample=16)
     return estimate.scale[0, 0]
 
 
@@ -35,6 +35,16 @@ class TestLogPolarScale:
         rotation = random_rotation(1, torch.Generator().manual_seed(7))[0]
         moving = Pose(rotation, scale, torch.tensor([2.0, -1.0, 3.0], dtype=torch.float64)).moving_from(fixed)
         assert _scale_of(fixed, moving, rotation).item() == pytest.approx(scale, rel=0.01)
+
+    @pytest.mark.parametrize("scale", [0.7, 1.4])
+    @pytest.mark.parametrize("refine", [True, False])
+    def test_the_estimate_stays_within_max_scale(self, scale, refine):
+        """The window ended at whole lags and the sub-grid peak went past it: 1.2 gave up to 1.30."""
+        fixed = volume_grid("mni", 64, torch.float64)
+        eye = torch.eye(3, dtype=torch.float64)
+        moving = Pose(eye, scale, torch.zeros(3, dtype=torch.float64)).moving_from(fixed)
+        estimate = _scale_of(fixed, moving, eye, refine=refine, max_scale=1.2).item()
+        assert 1 / 1.2 <= estimate <= 1.2
 
     def test_soft_estimate_is_close_to_the_refined_one(self):
         fixed = volume_grid("mni", 64, torch.float64)

@@ -101,5 +101,6 @@ def log_polar_scale(fixed_magnitude: Tensor, moving_magnitude: Tensor, rotation:
         shift, height = refine_peak(spectrum, peak.index, sizes, upsample=upsample)
     else:
         shift, height = peak.shift, surface.max(-1).values
-    return ScaleEstimate(scale=torch.exp(-shift[:, 0] * step).reshape(batch, count), peak=peak, bin=step,
-                         height=height.reshape(batch, count))
+    # The window ends at whole lags and the sub-grid peak may lie past its last one: 1.2 gave up to 1.30.
+    scale = torch.exp(-shift[:, 0] * step).clamp(1 / max_scale, max_scale)
+    return ScaleEstimate(scale=scale.reshape(batch, count), peak=peak, bin=step, height=height.reshape(batch, count))
