@@ -7,6 +7,7 @@ pyvista is the optional ``mesh`` extra (it brings PyPI's VTK); without it :func:
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -73,9 +74,14 @@ def before_after(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Tr
     Args:
         fixed, moving: the registered volumes.
         fixed_to_moving: the registration, fixed to moving (LPS mm); moving points go through its inverse.
-        path: the PNG, written atomically.
+        path: the PNG (``.png``), written atomically.
         title: shown above the two panels.
+
+    Raises:
+        InputError: ``path`` does not end in ``.png`` (pyvista raised a bare ValueError, or wrote a JPEG for .jpg).
     """
+    if Path(path).suffix.lower() != ".png":
+        raise InputError(f"render path {path} must end in .png")
     pv = _pyvista()
     fixed_surface, moving_surface = surface(fixed), surface(moving, brightest_tissue_level(moving))
     after = moving_surface.copy()
@@ -95,6 +101,8 @@ def before_after(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Tr
         plotter.subplot(0, 0)
         plotter.add_text(title, position="lower_left", font_size=9)
     plotter.link_views()
-    with io.atomic_output(path) as temporary:
-        plotter.screenshot(str(temporary))
-    plotter.close()
+    try:
+        with io.atomic_output(path) as temporary:
+            plotter.screenshot(str(temporary))
+    finally:
+        plotter.close()  # a failed screenshot keeps no render window open

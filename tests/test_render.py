@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
+from dpcn_med.errors import InputError
 from dpcn_med.evaluation import moved_copy, random_similarity
 from tests.conftest import shared_path
 
@@ -58,3 +59,11 @@ def test_the_brightest_level_finds_bone_beside_padding():
     """The MRI-DIR CT's -2048 HU padding outside its field of view had pulled the 'bone' level to -236 HU."""
     image = sitk.ReadImage(str(shared_path("mridir/mridir_ct_3p0mm.nii.gz")))
     assert 200.0 < render.brightest_tissue_level(image) < 500.0
+
+
+@pytest.mark.parametrize("name", ["render.jpg", "render", "render.PNG.txt"])
+def test_a_path_not_ending_in_png_is_refused(name, tmp_path):
+    ball = oblique_ball()
+    with pytest.raises(InputError, match=r"must end in \.png$"):
+        render.before_after(ball, ball, sitk.Euler3DTransform(), tmp_path / name)
+    assert not list(tmp_path.iterdir())
