@@ -38,7 +38,8 @@ class TestModelConfig:
     @pytest.mark.parametrize(("options", "message"), [
         ({"modalities": ("ct", "pet")}, "modalities .* expected two of ct, mr, us"),
         ({"channels": (8,)}, "need at least two levels"),
-        ({"bandwidth": 6, "channels": (4, 8, 16, 32)}, "grid size 12 must be divisible by 2\\^3"),
+        ({"bandwidth": 10, "channels": (4, 8, 16, 32)}, "grid size 20 must be divisible by 2\\^3"),
+        ({"bandwidth": 6}, r"bandwidth 6 is out of range: use an integer in \[8, 128\]"),  # a 12^3 grid
         ({"mode": "affine"}, "affine"),
     ])
     def test_refuses_bad_values(self, options, message):

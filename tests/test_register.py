@@ -532,9 +532,9 @@ class TestErrors:
         with pytest.raises(InputError, match="trained at bandwidth 16; register with bandwidth=16"):
             register(mni_2mm(), mni_2mm(), model=tmp_path / "b16", bandwidth=32)
 
-    @pytest.mark.parametrize("bandwidth", [0, 3, 129])
+    @pytest.mark.parametrize("bandwidth", [0, 3, 7, 129])  # 4-7 made grids under 16^3, refused after preprocessing
     def test_bandwidth_out_of_range(self, bandwidth):
-        with pytest.raises(InputError, match=rf"bandwidth {bandwidth} is out of range: use an integer in \[4, 128\]$"):
+        with pytest.raises(InputError, match=rf"bandwidth {bandwidth} is out of range: use an integer in \[8, 128\]$"):
             register(mni_2mm(), mni_2mm(), bandwidth=bandwidth)
 
     def test_unknown_modality(self):
@@ -673,11 +673,11 @@ class TestArguments:
 
     def test_typical_values_are_taken(self):
         calls = []
-        result = register(_small_volume(), _small_volume(), bandwidth=np.int64(4), refine=np.bool_(False),
+        result = register(_small_volume(), _small_volume(), bandwidth=np.int64(8), refine=np.bool_(False),
                           resample=True, device=torch.device("cpu"), model="none", preprocessing=Preprocessing(),
                           refinement=Refinement(), solver=SolverConfig(),
                           progress=lambda stage, fraction: calls.append(stage))
-        assert result.bandwidth == 4 and type(result.bandwidth) is int and not result.refined
+        assert result.bandwidth == 8 and type(result.bandwidth) is int and not result.refined
         assert result.resampled is not None and calls[-1] == "done"
 
 

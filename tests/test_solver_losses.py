@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
+from dpcn_med.errors import InputError
 from dpcn_med.geometry import axis_angle_to_matrix, random_rotation
-from dpcn_med.solver import PoseTarget, StageTemperatures, Temperatures, pose_loss, solve
+from dpcn_med.solver import LossWeights, PoseTarget, StageTemperatures, Temperatures, pose_loss, solve
 from dpcn_med.solver.losses import rotation_kl, shift_kl
 from dpcn_med.solver.so3 import grid_rotations, so3_log_prob
 from dpcn_med.synth import random_poses
@@ -49,6 +51,59 @@ class TestRotationKL:
         wrong = truth @ axis_angle_to_matrix(torch.tensor([0.0, math.pi / 2, 0.0], dtype=torch.float64))
         right_kl = rotation_kl(log_prob, truth, math.radians(15.0))
         assert right_kl.item() < 0.5 * rotation_kl(log_prob, wrong, math.radians(15.0)).item()
+
+
+class TestLossWeights:
+    def test_defaults_and_numpy_values(self):
+        assert LossWeights(scale_l1=np.float32(3.0), shift_sigma=np.int64(1)) == LossWeights()
+        assert type(LossWeights(scale_l1=np.float32(3.0)).scale_l1) is float
+
+    @pytest.mark.parametrize(("field", "value", "message"), [
+        ("rotation_sigma", 0.0, r"rotation_sigma is 0\.0; expected a finite number >= 1e-06"),  # was a NaN rotation_kl
+        ("shift_sigma", 0.0, r"shift_sigma is 0\.0; expected a finite number >= 1e-06"),  # was NaN shift terms
+        ("rotation_sigma", -0.1, r"rotation_sigma is -0\.1; expected a finite number >= 1e-06"),
+        ("shift_sigma", 1e-20, r"shift_sigma is 1e-20; expected a finite number >= 1e-06"),  # -inf everywhere: NaN
+        ("rotation_l1", float("nan"), r"rotation_l1 is nan; expected a finite number >= 0"),  # was a NaN total
+        ("rotation_kl", -5.0, r"rotation_kl is -5\.0; expected a finite number >= 0"),  # rewarded a worse match
+        ("scale_kl", "1", r"scale_kl is '1' \(str\); expected a finite number >= 0"),
+    ])
+    def test_bad_values_are_refused(self, field, value, message):
+        with pytest.raises(InputError, match=message):
+            LossWeights(**{field: value})
+
+
+class TestPoseTarget:
+    @staticmethod
+    def _target(**changes) -> PoseTarget:
+        values = {"rotation": torch.eye(3)[None].expand(2, 3, 3), "scale": torch.tensor([1.1, 0.9]),
+                  "translation": torch.zeros(2, 3)}
+        return PoseTarget(**{**values, **changes})
+
+    def test_a_good_target_is_kept_as_given(self):
+        scale = torch.tensor([1.1, 0.9], dtype=torch.float64)
+        assert self._target(scale=scale).scale is scale
+
+    @pytest.mark.parametrize(("changes", "message"), [
+        ({"scale": torch.tensor([1.0, 0.0])}, r"target scale\[1\] is 0\.0; expected a scale > 0"),  # was NaN terms
+        ({"scale": torch.tensor([-1.0, 1.0])}, r"target scale\[0\] is -1\.0; expected a scale > 0"),
+        ({"scale": torch.tensor([1.0, float("nan")])}, r"target scale holds NaN or Inf values"),
+        ({"translation": torch.full((2, 3), float("inf"))}, r"target translation holds NaN or Inf values"),
+        ({"scale": torch.ones(2, 1)}, r"target scale has shape \(2, 1\); expected a tensor of shape \(batch,\)"),
+        ({"scale": torch.ones(3)}, r"target scale has shape \(3,\); expected a batch of 2, as the rotation "
+                                   r"\(2, 3, 3\)"),
+        ({"translation": torch.zeros(2, 2)}, r"target translation has shape \(2, 2\); expected a tensor of shape "
+                                             r"\(batch, 3\)"),
+        ({"rotation": torch.eye(3)}, r"target rotation has shape \(3, 3\); expected a tensor of shape \(batch, 3, 3\)"),
+        ({"scale": 1.0}, r"target scale is 1\.0 \(float\); expected a tensor of shape \(batch,\)"),
+        ({"rotation": torch.zeros(0, 3, 3)}, r"target rotation holds no poses \(shape \(0, 3, 3\)\)"),
+    ])
+    def test_bad_targets_are_refused(self, changes, message):
+        with pytest.raises(InputError, match=message):
+            self._target(**changes)
+
+    def test_values_off_the_cpu_are_not_read(self):  # reading them would synchronise a GPU every training step
+        target = self._target(scale=torch.empty(2, device="meta"))
+        assert target.scale.device.type == "meta"
 
 
 class TestPoseLoss:
@@ -108,6 +163,10 @@ class TestTemperatures:
             for parameter in module.parameters():
                 parameter.fill_(-50.0)
         assert (torch.stack([module().rotation, module().scale]) > 0).all()
+
+    def test_a_temperature_that_softplus_cannot_hold_is_refused(self):  # softplus gave exactly 0.0 for 1e-50
+        with pytest.raises(InputError, match=r"translation temperature is 1e-50; expected a finite number >= 1e-12"):
+            Temperatures(StageTemperatures(translation=1e-50))
 
 
 class TestEndToEndTraining:

@@ -23,24 +23,34 @@ class TestValidation:
         ({"iterations": 0}, r"iterations is 0; expected an integer >= 1"),  # was run as 1 pass, silently
         ({"iterations": -3}, r"iterations is -3; expected an integer >= 1"),
         ({"upsample": 0}, r"upsample is 0; expected an integer >= 1"),  # was a NaN scale and translation
-        ({"log_polar_angles": 1}, r"log_polar_angles is 1; expected an integer >= 2"),  # was a wrong pose
-        ({"log_polar_radii": 1}, r"log_polar_radii is 1; expected an integer >= 2"),  # was a ZeroDivisionError
+        ({"log_polar_angles": 1}, r"log_polar_angles is 1; expected an integer >= 12"),  # was a wrong pose
+        ({"log_polar_angles": 8}, r"log_polar_angles is 8; expected an integer >= 12"),  # was up to 174 degrees off
+        ({"log_polar_radii": 1}, r"log_polar_radii is 1; expected an integer >= 20"),  # was a ZeroDivisionError
+        ({"log_polar_radii": 16}, r"log_polar_radii is 16; expected an integer >= 20"),  # was up to 59 degrees off
         ({"log_polar_band": (0.9, 0.03)}, r"log_polar_band is \(0\.9, 0\.03\); expected \(low, high\)"),
         ({"log_polar_band": (0.0, 0.9)}, r"log_polar_band is \(0\.0, 0\.9\); expected \(low, high\)"),
-    ], ids=["iterations 0", "iterations -3", "upsample 0", "angles 1", "radii 1", "band reversed", "band from 0"])
+        ({"iteration": 2}, r"solver option 'iteration' is unknown \(did you mean 'iterations'\?\)"),  # a TypeError
+    ], ids=["iterations 0", "iterations -3", "upsample 0", "angles 1", "angles 8", "radii 1", "radii 16",
+            "band reversed", "band from 0", "unknown option"])
     def test_bad_settings_are_refused(self, options, message):
-        image = torch.zeros(1, 1, 16, 16)
+        image = torch.zeros(1, 1, 32, 32)
         with pytest.raises(InputError, match=message):
             solve2d(image, image, **options)
 
     def test_zero_temperature_is_refused(self):  # was a NaN confidence
-        with pytest.raises(InputError, match=r"translation temperature is 0\.0; expected a finite number > 0"):
+        with pytest.raises(InputError, match=r"translation temperature is 0\.0; expected a finite number >= 1e-12"):
             solve2d(torch.zeros(1, 1, 16, 16), torch.zeros(1, 1, 16, 16),
                     temperatures=StageTemperatures(translation=0.0))
 
     def test_empty_batch(self):
         with pytest.raises(InputError, match=r"fixed holds no grids \(batch size 0"):
             solve2d(torch.zeros(0, 1, 16, 16), torch.zeros(0, 1, 16, 16))
+
+    @pytest.mark.parametrize("size", [8, 16, 30])
+    def test_small_images_are_refused(self, size):  # 8-24 passed and gave poses up to 180 degrees off
+        image = torch.zeros(1, 1, size, size)
+        with pytest.raises(InputError, match=rf"fixed grid size is {size}; expected an even N >= 32 \(smaller 2-D"):
+            solve2d(image, image)
 
     def test_non_square(self):
         with pytest.raises(InputError, match="fixed grid is not cubic"):

@@ -11,6 +11,7 @@ import torch
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import half_turns, rotation_angle
 from dpcn_med.solver import SolverConfig, StageTemperatures, solve
+from dpcn_med.solver.config import MIN_TEMPERATURE, override
 from dpcn_med.solver.so3 import sphere_correlation
 from dpcn_med.solver.solve3d import _candidate_scores, _sphere
 from dpcn_med.solver.spectrum import magnitude_spectrum
@@ -25,7 +26,10 @@ class TestValidation:
         ((1, 1, 16, 16), (1, 1, 16, 16), r"expected \(B, 1, N, N, N\) \(for the other dimension use solve2d\)"),
         ((1, 2, 16, 16, 16), (1, 2, 16, 16, 16), "2 channels"),
         ((1, 1, 16, 16, 12), (1, 1, 16, 16, 12), "not cubic"),
-        ((1, 1, 15, 15, 15), (1, 1, 15, 15, 15), "must be even"),
+        ((1, 1, 15, 15, 15), (1, 1, 15, 15, 15), r"grid size is 15; expected an even N >= 16"),
+        # 8-14 passed and gave rotations tens of degrees off on real volumes (MIN_GRID_SIZE)
+        ((1, 1, 8, 8, 8), (1, 1, 8, 8, 8), r"grid size is 8; expected an even N >= 16 \(N = 2B; smaller 3-D grids"),
+        ((1, 1, 14, 14, 14), (1, 1, 14, 14, 14), r"grid size is 14; expected an even N >= 16"),
         ((1, 1, 16, 16, 16), (1, 1, 32, 32, 32), "shapes differ"),
     ])
     def test_malformed_grids(self, fixed_shape, moving_shape, message):
@@ -95,7 +99,9 @@ class TestSolverConfig:
         ("peaks", 10 ** 9, r"peaks is 1000000000; expected an integer >= 1 and <= 64"),
         ("sphere_radii", 10 ** 9, r"sphere_radii is 1000000000; expected an integer >= 1 and <= 1024"),
         ("upsample", 10 ** 6, r"upsample is 1000000; expected an integer >= 1 and <= 256"),
-        ("scale_radii", 1, r"scale_radii is 1; expected an integer >= 2"),
+        ("scale_radii", 1, r"scale_radii is 1; expected an integer >= 16"),
+        ("scale_radii", 3, r"scale_radii is 3; expected an integer >= 16"),  # was a scale of 1.0 whatever the pair
+        ("scale_radii", 12, r"scale_radii is 12; expected an integer >= 16"),  # was 1.5-5x the default's error
         ("scale_bandwidth", 0, r"scale_bandwidth is 0; expected an integer >= 1"),
         ("refine_oversample", 0, r"refine_oversample is 0; expected an integer >= 1"),
         ("refine_iterations", -1, r"refine_iterations is -1; expected an integer >= 0"),
@@ -124,18 +130,36 @@ class TestSolverConfig:
         with pytest.raises(InputError, match=message):
             SolverConfig(**{field: value})
 
+    def test_overrides_are_checked_and_unknown_names_refused(self):
+        assert override(SolverConfig(peaks=2), bandwidth=np.int64(8)) == SolverConfig(peaks=2, bandwidth=8)
+        assert override(None) == SolverConfig()
+        with pytest.raises(InputError, match=r"solver option 'bandwith' is unknown \(did you mean 'bandwidth'\?\); "
+                                             r"expected one of bandwidth, taper, "):
+            override(None, bandwith=8)  # dataclasses.replace raised a TypeError
+        with pytest.raises(InputError, match=r"upsample is 0; expected an integer >= 1"):
+            override(SolverConfig(), upsample=0)
+        with pytest.raises(InputError, match=r"config is \{\} \(dict\); expected a SolverConfig or None"):
+            override({}, peaks=2)
+
     def test_solve_checks_its_overrides(self):
         grid = torch.zeros(1, 1, 16, 16, 16)
         with pytest.raises(InputError, match="upsample is 0"):
             solve(grid, grid, upsample=0)
+        with pytest.raises(InputError, match="solver option 'bandwith' is unknown"):
+            solve(grid, grid, bandwith=8)
 
     @pytest.mark.parametrize(("value", "message"), [
-        (0.0, r"rotation temperature is 0\.0; expected a finite number > 0"),
-        (-0.01, r"rotation temperature is -0\.01; expected a finite number > 0"),
+        (0.0, r"rotation temperature is 0\.0; expected a finite number >= 1e-12"),
+        (-0.01, r"rotation temperature is -0\.01; expected a finite number >= 1e-12"),
+        (1e-40, r"rotation temperature is 1e-40; expected a finite number >= 1e-12"),  # was a NaN pose
         (float("nan"), r"rotation temperature is nan"),
         ("0.02", r"rotation temperature is '0\.02' \(str\)"),
-        (torch.tensor([]), r"rotation temperature is tensor\(\[\]\); expected a finite number > 0"),
-        (torch.tensor(1), r"rotation temperature is tensor\(1\)"),
+        (torch.tensor([]), r"rotation temperature is tensor\(\[\]\) \(Tensor\) of shape \(0,\)"),
+        (torch.tensor(1), r"rotation temperature is tensor\(1\) \(Tensor\) of shape \(\) and dtype torch\.int64"),
+        # broadcast against the surface: one temperature per cell, a confidence of 0.001 instead of 1 and no error
+        (torch.linspace(0.001, 1.0, 32), r"rotation temperature is .* of shape \(32,\) and dtype torch\.float32; "
+                                         r"expected .* or a 0-d floating-point tensor"),
+        (torch.tensor([0.02]), r"rotation temperature is .* of shape \(1,\)"),
     ])
     def test_bad_temperatures_are_refused(self, value, message):
         with pytest.raises(InputError, match=message):
@@ -144,6 +168,14 @@ class TestSolverConfig:
     def test_learned_temperatures_pass(self):
         temperature = torch.tensor(0.05, requires_grad=True)
         assert StageTemperatures(scale=temperature).scale is temperature
+
+    def test_the_least_temperature_gives_a_finite_pose(self):
+        fixed = volume_grid("mni", 16)
+        moving = random_poses(1, 16, seed=40)[0].moving_from(fixed)
+        for refine in (True, False):
+            result = solve(fixed, moving, refine=refine, temperatures=StageTemperatures(*[MIN_TEMPERATURE] * 3))
+            assert all(torch.isfinite(value).all() for value in (result.rotation, result.scale, result.translation,
+                                                                 result.confidence))
 
 
 class TestDegenerateInputs:

@@ -187,7 +187,7 @@ BAD_CONFIGS = {  # (text of TINY_YAML, its replacement, the message's key words)
     "channels_not_a_list": ("channels: [4, 8, 16]", "channels: 4", r"model\.channels: expected a list of integers"),
     "string_bandwidth": ("bandwidth: 8", "bandwidth: '8'", r"model\.bandwidth: expected an integer, got '8'"),
     "zero_bandwidth": ("bandwidth: 8", "bandwidth: 0", r"model\.bandwidth 0 is out of range: use an integer in "
-                       r"\[4, 128\]"),
+                       r"\[8, 128\]"),
     "negative_bandwidth": ("bandwidth: 8", "bandwidth: -8", r"model\.bandwidth -8 is out of range"),
     "huge_bandwidth": ("bandwidth: 8", "bandwidth: 200", r"model\.bandwidth 200 is out of range"),
     "preprocessing_type": ("modalities: [ct, mr]}", "modalities: [ct, mr], preprocessing: {fill: x}}",

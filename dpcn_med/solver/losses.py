@@ -9,10 +9,19 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from dpcn_med.arguments import check_real, shown
+from dpcn_med.errors import InputError
 from dpcn_med.geometry import geodesic_distance, grid_centre
 from dpcn_med.solver.so3 import euler_grid, grid_rotations
 from dpcn_med.solver.solve3d import SolveResult
 from dpcn_med.solver.translation import TranslationEstimate
+
+_WEIGHTS = ("rotation_kl", "rotation_l1", "translation_kl", "translation_l1", "scale_kl", "scale_l1")
+
+MIN_SIGMA = 1e-6
+"""Least target width (radians or cells). The Gaussian's exponent ``-d^2 / 2 sigma^2`` overflowed float32 to
+``-inf`` in every cell from about 1e-19 (every KL term NaN; measured finite at 1e-15); 1e-6 is far below a grid cell
+(0.025 rad at B = 128, one cell for shifts), where the target is one cell already."""
 
 
 @dataclass(frozen=True)
@@ -33,6 +42,18 @@ class LossWeights:
     scale_l1: float = 3.0
     rotation_sigma: float = math.radians(5.0)
     shift_sigma: float = 1.0
+
+    def __post_init__(self) -> None:
+        """Check that the weights are finite and >= 0 and the widths finite and >= :data:`MIN_SIGMA` (a width of 0
+        gave NaN terms); store numpy scalars as Python floats.
+
+        Raises:
+            InputError: a value of the wrong type or out of range.
+        """
+        for name in _WEIGHTS:
+            object.__setattr__(self, name, check_real(name, getattr(self, name), minimum=0.0))
+        for name in ("rotation_sigma", "shift_sigma"):
+            object.__setattr__(self, name, check_real(name, getattr(self, name), minimum=MIN_SIGMA))
 
 
 def _kl_from_log_target(log_target: Tensor, log_prob: Tensor) -> Tensor:
@@ -104,13 +125,38 @@ class PoseTarget:
 
     Attributes:
         rotation: ``(batch, 3, 3)``.
-        scale: ``(batch,)``.
+        scale: ``(batch,)``, positive.
         translation: ``(batch, 3)`` voxels ``(x, y, z)``.
     """
 
     rotation: Tensor
     scale: Tensor
     translation: Tensor
+
+    def __post_init__(self) -> None:
+        """Check the shapes; on the CPU also that the values are finite and the scales positive (a scale of 0 gave NaN
+        scale terms). Values on another device are not read: that would synchronise it on every training step.
+
+        Raises:
+            InputError: a value that is not a tensor, a shape that is not as above, or a bad value on the CPU.
+        """
+        for name, tail in {"rotation": (3, 3), "scale": (), "translation": (3,)}.items():
+            value = getattr(self, name)
+            expected = f"a tensor of shape {('batch', *tail)}".replace("'", "")
+            if not isinstance(value, Tensor):
+                raise InputError(f"target {name} is {shown(value)}; expected {expected}")
+            if tuple(value.shape[1:]) != tail or value.dim() != 1 + len(tail):
+                raise InputError(f"target {name} has shape {tuple(value.shape)}; expected {expected}")
+            if value.shape[0] == 0:
+                raise InputError(f"target {name} holds no poses (shape {tuple(value.shape)}); expected at least one")
+            if value.shape[0] != self.rotation.shape[0]:
+                raise InputError(f"target {name} has shape {tuple(value.shape)}; expected a batch of "
+                                 f"{self.rotation.shape[0]}, as the rotation {tuple(self.rotation.shape)}")
+            if value.device.type == "cpu" and not torch.isfinite(value).all():
+                raise InputError(f"target {name} holds NaN or Inf values")
+        if self.scale.device.type == "cpu" and not (self.scale > 0).all():
+            index = int((self.scale <= 0).nonzero()[0])
+            raise InputError(f"target scale[{index}] is {self.scale[index].item()!r}; expected a scale > 0")
 
 
 def pose_loss(result: SolveResult, target: PoseTarget, weights: LossWeights | None = None, *,

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from dpcn_med.geometry import rotation_2d, warp
-from dpcn_med.solver.config import SolverConfig, StageTemperatures
+from dpcn_med.solver.config import SolverConfig, StageTemperatures, override
 from dpcn_med.solver.log_polar import LogPolarEstimate, log_polar_rotation_scale
 from dpcn_med.solver.spectrum import magnitude_spectrum
 from dpcn_med.solver.translation import TranslationEstimate, phase_translation
@@ -63,7 +63,7 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
         phase-correlated for translation; the higher peak wins. Later passes (``iterations``) warp the moving image
         by the estimate and measure the small residual, where interpolation errors are smallest.
     """
-    config = replace(config or SolverConfig(), **options)
+    config = override(config, **options)
     temperatures = temperatures or StageTemperatures()
     check_grids(fixed, moving, 2)
     check_mode(mode)

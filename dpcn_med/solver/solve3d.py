@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from dpcn_med.geometry import half_turns, warp
-from dpcn_med.solver.config import SolverConfig, StageTemperatures
+from dpcn_med.solver.config import SolverConfig, StageTemperatures, override
 from dpcn_med.solver.harmonics import even_degrees, isht, sht
 from dpcn_med.solver.phase_correlation import phase_correlation
 from dpcn_med.solver.scale import ScaleEstimate, log_polar_scale
@@ -212,7 +212,7 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         Chen et al., "DPCN++: Differentiable Phase Correlation Network for Versatile Pose Registration", IEEE TPAMI
         2024.
     """
-    config = replace(config or SolverConfig(), **options)
+    config = override(config, **options)
     temperatures = temperatures or StageTemperatures()
     size = check_grids(fixed, moving, 3)
     check_mode(mode)
