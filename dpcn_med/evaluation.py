@@ -75,7 +75,8 @@ def foreground_corners(image: sitk.Image, mask: sitk.Image | None = None) -> np.
                          "image has no foreground (it is blank or constant); corners need an object to surround")
     start, size = np.split(np.asarray(stats.GetBoundingBox(1), dtype=np.float64), 2)
     corners = [start - 0.5 + size * np.array(c) for c in np.ndindex(2, 2, 2)]
-    return np.array([image.TransformContinuousIndexToPhysicalPoint(c.tolist()) for c in corners])
+    grid = image if mask is None else mask  # the box is in the mask's voxels, whatever its grid
+    return np.array([grid.TransformContinuousIndexToPhysicalPoint(c.tolist()) for c in corners])
 
 
 def target_registration_error(estimate: sitk.Transform, truth: sitk.Transform, points: ArrayLike) -> float:

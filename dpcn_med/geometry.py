@@ -121,10 +121,17 @@ def matrix_to_euler_zyz(rotation: Tensor) -> Tensor:
     r = rotation
     sin_beta = torch.sqrt(r[..., 0, 2] ** 2 + r[..., 1, 2] ** 2)
     beta = torch.atan2(sin_beta, r[..., 2, 2])  # accurate near the poles, where acos(r22) loses half the digits
-    # Below this the two atan2 below lose their accuracy faster than the rotation depends on alpha - gamma.
+    # alpha from (r02, r12) = sin beta (cos alpha, sin alpha); gamma from alpha + gamma (towards beta = 0) or
+    # alpha - gamma (towards pi), read from the upper-left block, where they come times (1 +- cos beta): exact where
+    # the rotation depends on them. Read from r20, r21, as sin beta times rounding near a pole, gamma was up to 180
+    # degrees off (identity with r02 = 1e-8; products of float32 rotations).
+    alpha = torch.atan2(r[..., 1, 2], r[..., 0, 2])
+    total = torch.atan2(r[..., 1, 0] - r[..., 0, 1], r[..., 0, 0] + r[..., 1, 1])
+    difference = torch.atan2(-r[..., 1, 0] - r[..., 0, 1], r[..., 1, 1] - r[..., 0, 0])
+    gamma = torch.where(r[..., 2, 2] >= 0, total - alpha, alpha - difference)
     regular = sin_beta > 1e-12
-    alpha = torch.where(regular, torch.atan2(r[..., 1, 2], r[..., 0, 2]), torch.atan2(r[..., 1, 0], r[..., 0, 0]))
-    gamma = torch.where(regular, torch.atan2(r[..., 2, 1], -r[..., 2, 0]), torch.zeros_like(beta))
+    alpha = torch.where(regular, alpha, torch.atan2(r[..., 1, 0], r[..., 0, 0]))
+    gamma = torch.where(regular, gamma, torch.zeros_like(beta))
     # At beta = pi, R = Rz(alpha) diag(-1, 1, -1) Rz(gamma); with gamma = 0, alpha = atan2(-r10, -r00).
     at_south = (~regular) & (r[..., 2, 2] < 0)
     alpha = torch.where(at_south, torch.atan2(-r[..., 1, 0], -r[..., 0, 0]), alpha)
@@ -395,28 +402,46 @@ def similarity_transform(matrix: np.ndarray, centre: np.ndarray, *, rigid: bool,
 
 
 def homogeneous_matrix(transform: sitk.Transform) -> np.ndarray:
-    """``(4, 4)`` matrix of a linear SimpleITK transform (rigid, similarity, affine; composites flattened), same
-    frames as the transform: ``[x', 1] = H [x, 1]``."""
+    """``(4, 4)`` matrix of a linear 3-D SimpleITK transform (identity, translation, rigid, versor, scale,
+    similarity, affine; composites flattened), same frames as the transform: ``[x', 1] = H [x, 1]``.
+
+    Raises:
+        ValueError: the transform is not linear (a displacement field, a B-spline) or not 3-D.
+    """
     linear = np.eye(4)
     for part in _linear_parts(transform):
-        matrix = np.asarray(part.GetMatrix(), dtype=np.float64).reshape(3, 3)
-        centre = np.asarray(part.GetCenter(), dtype=np.float64)
-        step = np.eye(4)
-        step[:3, :3] = matrix
-        step[:3, 3] = np.asarray(part.GetTranslation(), dtype=np.float64) + centre - matrix @ centre
-        linear = linear @ step  # ITK composites apply the last-added transform first
+        linear = linear @ _part_matrix(part)  # ITK composites apply the last-added transform first
     return linear
 
 
+def _part_matrix(part: sitk.Transform) -> np.ndarray:
+    """One linear transform as ``(4, 4)``: from its matrix, centre and translation where it has them (exact), else
+    from the images of the origin and the unit vectors (a translation, a versor or a scale has no translation or no
+    matrix to read, and the identity neither)."""
+    step = np.eye(4)
+    if all(hasattr(part, name) for name in ("GetMatrix", "GetCenter", "GetTranslation")):
+        matrix = np.asarray(part.GetMatrix(), dtype=np.float64).reshape(3, 3)
+        centre = np.asarray(part.GetCenter(), dtype=np.float64)
+        step[:3, :3] = matrix
+        step[:3, 3] = np.asarray(part.GetTranslation(), dtype=np.float64) + centre - matrix @ centre
+        return step
+    origin = np.asarray(part.TransformPoint((0.0, 0.0, 0.0)), dtype=np.float64)
+    step[:3, :3] = np.column_stack([np.asarray(part.TransformPoint(tuple(axis)), dtype=np.float64) - origin
+                                    for axis in np.eye(3)])
+    step[:3, 3] = origin
+    return step
+
+
 def _linear_parts(transform: sitk.Transform) -> list[sitk.Transform]:
+    if transform.GetDimension() != 3:
+        raise ValueError(f"{transform.GetName()} is {transform.GetDimension()}-D; expected a 3-D transform")
     if transform.GetName() == "CompositeTransform":
         composite = sitk.CompositeTransform(transform)
         return [part for i in range(composite.GetNumberOfTransforms())
                 for part in _linear_parts(composite.GetNthTransform(i))]
-    downcast = transform.Downcast()
-    if not hasattr(downcast, "GetMatrix"):
+    if not transform.IsLinear():
         raise ValueError(f"{transform.GetName()} is not a linear transform")
-    return [downcast]
+    return [transform.Downcast()]
 
 
 def slicer_to_parent_ras(fixed_to_moving: sitk.Transform) -> np.ndarray:

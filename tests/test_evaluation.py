@@ -75,6 +75,16 @@ class TestForegroundCorners:
         expected = image.TransformContinuousIndexToPhysicalPoint((1.5, 3.5, 2.5))
         assert any(np.allclose(c, expected) for c in corners)
 
+    def test_a_mask_on_its_own_grid(self):
+        """The box was found in the mask's voxels and placed with the image's geometry: 15 mm off here."""
+        mask = sitk.Image(20, 20, 20, sitk.sitkUInt8)
+        mask.SetSpacing((0.5, 2.0, 1.0))
+        mask.SetOrigin((-7.0, 3.0, 11.0))
+        mask[4:8, 2:5, 6:9] = 1  # SimpleITK slices [x, y, z]: voxels x 4-7, y 2-4, z 6-8
+        corners = foreground_corners(_asymmetric_image(), mask)
+        np.testing.assert_allclose(corners.min(0), (-7.0 + 3.5 * 0.5, 3.0 + 1.5 * 2.0, 11.0 + 5.5))
+        np.testing.assert_allclose(corners.max(0), (-7.0 + 7.5 * 0.5, 3.0 + 4.5 * 2.0, 11.0 + 8.5))
+
     # Before: ITK's RuntimeError "No label object with label 1" from LabelShapeStatisticsImageFilter.
     def test_empty_mask(self):
         mask = sitk.Image(16, 14, 12, sitk.sitkUInt8)

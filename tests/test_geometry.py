@@ -54,6 +54,22 @@ class TestEulerZYZ:
         assert (angles[:, 1] >= 0).all() and (angles[:, 1] <= math.pi).all()
         torch.testing.assert_close(euler_zyz_to_matrix(angles), rotation, atol=1e-9, rtol=0)
 
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_rounded_rotations_near_the_poles(self, dtype):
+        """alpha and gamma were each read from entries that are sin(beta) times rounding there: up to 180 degrees
+        off (identity with r02 = 1e-8; products of float32 rotations)."""
+        generator = torch.Generator().manual_seed(5)
+        angles = torch.rand(500, 3, generator=generator, dtype=torch.float64) * 2 * math.pi
+        near = torch.rand(500, generator=generator, dtype=torch.float64) * 1e-5
+        angles[:, 1] = torch.where(torch.arange(500) % 2 == 0, near, math.pi - near)
+        rotation = euler_zyz_to_matrix(angles).to(dtype)
+        rebuilt = euler_zyz_to_matrix(matrix_to_euler_zyz(rotation))
+        assert (rebuilt - rotation).abs().max() < 20 * torch.finfo(dtype).eps
+        nudged = torch.eye(3, dtype=torch.float64)
+        nudged[0, 2] = 1e-8
+        assert matrix_to_euler_zyz(nudged)[[0, 2]].sum().remainder(2 * math.pi) < 1e-6 or \
+            matrix_to_euler_zyz(nudged)[[0, 2]].sum().remainder(2 * math.pi) > 2 * math.pi - 1e-6
+
     @pytest.mark.parametrize("beta", [0.0, 5e-7, 2e-6, math.pi - 2e-6, math.pi])
     def test_round_trip_at_and_near_the_gimbal_poles(self, beta):
         rotation = euler_zyz_to_matrix(torch.tensor([0.7, beta, 0.4], dtype=torch.float64))
@@ -245,9 +261,30 @@ class TestHomogeneousMatrix:
         matrix = homogeneous_matrix(composite)
         np.testing.assert_allclose(matrix[:3, :3] @ point + matrix[:3, 3], expected, atol=1e-9)
 
+    @pytest.mark.parametrize("make", [
+        lambda: sitk.TranslationTransform(3, (4.0, -5.0, 6.0)),  # was refused as not linear: a rigid ground truth
+        lambda: sitk.Transform(),  # the identity, likewise
+        lambda: sitk.VersorTransform((0.2, -0.4, 0.5), 2.0, (3.0, 1.0, -2.0)),  # AttributeError: no GetTranslation
+        lambda: sitk.ScaleTransform(3, (1.1, 1.1, 1.1)),  # AttributeError too
+        lambda: sitk.CompositeTransform([sitk.TranslationTransform(3, (1.0, 2.0, 3.0)), _similarity(4)]),
+        lambda: sitk.AffineTransform(3),
+    ], ids=["translation", "identity", "versor", "scale", "composite with a translation", "affine"])
+    def test_every_linear_transform_type(self, make):
+        transform = make()
+        matrix = homogeneous_matrix(transform)
+        for point in np.random.default_rng(1).normal(size=(5, 3)) * 50:
+            np.testing.assert_allclose(matrix[:3, :3] @ point + matrix[:3, 3], transform.TransformPoint(point.tolist()),
+                                       atol=1e-9)
+
     def test_rejects_nonlinear(self):
         with pytest.raises(ValueError, match="not a linear transform"):
             homogeneous_matrix(sitk.DisplacementFieldTransform(3))
+        with pytest.raises(ValueError, match="not a linear transform"):
+            homogeneous_matrix(sitk.CompositeTransform([_similarity(), sitk.DisplacementFieldTransform(3)]))
+
+    def test_rejects_2d(self):
+        with pytest.raises(ValueError, match=r"^Similarity2DTransform is 2-D; expected a 3-D transform$"):
+            homogeneous_matrix(sitk.Similarity2DTransform())
 
 
 class TestScaleAndRotation:
