@@ -51,6 +51,7 @@ GRID_TOLERANCE = 1e-4
 """Relative and absolute tolerance for a mask's spacing and direction against its image's, and for orthonormal
 direction cosines; a mask's origin may differ by this relative to the coordinate, but never by a tenth of a voxel."""
 
+_GZIP_MAGIC = b"\x1f\x8b"
 _CHUNK = 1 << 20
 _INPUT_FORMATS = "NIfTI (.nii, .nii.gz), NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd) or a folder of DICOM slices"
 # Bytes per element of MetaImage's element types (MetaIO's MET_LONG is 32-bit).
@@ -467,11 +468,17 @@ def _check_complete(path: Path) -> None:
             # Measured: ITK's NIfTI reader given X.nii.gz opens X.nii when both exist.
             raise InputError(f"{path}: {sibling.name} lies beside it and SimpleITK would read that file instead; "
                              "rename or move one of the two")
+        with open(path, "rb") as stream:
+            if stream.read(2) != _GZIP_MAGIC:  # "corrupt, copy it again" would send the user for the same file
+                raise InputError(f"{path}: is not gzip-compressed although its name ends in .gz (a browser or server "
+                                 f"may have unpacked it); rename it to {path.name[:-3]}")
         _check_nifti(path, compressed=True)
     elif lower.endswith(".nii"):
         _check_nifti(path, compressed=False)
     elif lower.endswith((".mha", ".mhd")):
         _check_metaimage(path)
+    elif lower.endswith((".hdr", ".img")):
+        _check_analyze(path)
 
 
 def _check_nifti(path: Path, *, compressed: bool) -> None:
@@ -511,6 +518,25 @@ def _check_nifti(path: Path, *, compressed: bool) -> None:
     if nan or infinite:
         raise InputError(f"{path}: holds {nan} NaN and {infinite} infinite voxels out of {voxels}; replace them "
                          "(e.g. numpy.nan_to_num) and save the volume again (SimpleITK would read them as 0)")
+
+
+def _check_analyze(path: Path) -> None:
+    """Raise if the voxel file of a ``.hdr`` / ``.img`` pair (Analyze, or NIfTI as a pair) is missing or shorter than
+    its header needs: SimpleITK reads a cut ``.img`` zero-filled, with no error (measured: half the voxels 0)."""
+    import nibabel  # imported here: only these files need it
+
+    voxels = path.with_suffix(".img")
+    if not voxels.exists():
+        raise InputError(f"{path}: its voxel file {voxels} is missing; keep {voxels.name} beside the header")
+    try:
+        proxy = nibabel.load(path.with_suffix(".hdr")).dataobj
+    except (nibabel.filebasedimages.ImageFileError, OSError, ValueError, EOFError):
+        return  # SimpleITK's own read has the last word, as for a NIfTI header nibabel refuses
+    needed = int(proxy.offset) + math.prod(proxy.shape) * proxy.dtype.itemsize
+    found = voxels.stat().st_size
+    if found < needed:
+        raise _truncated(voxels, f"it holds {found:,} bytes, the header {path.with_suffix('.hdr').name} needs "
+                                 f"{needed:,}")
 
 
 def _check_nifti_forms(path: Path, header: Any, shape: tuple[int, ...]) -> None:
@@ -589,7 +615,11 @@ def _check_metaimage(path: Path) -> None:
     needed = math.prod(int(n) for n in fields.get("DimSize", "").split()) * element_bytes
     needed *= int(fields.get("ElementNumberOfChannels", "1"))
     if fields.get("CompressedData", "False").lower() == "true":
-        found, complete = _inflated_length(source, data_offset)
+        try:
+            found, complete = _inflated_length(source, data_offset)
+        except zlib.error as error:  # was an uncaught internal error
+            raise InputError(f"{path}: the compressed voxel data is corrupt ({error}); copy or export it again"
+                             ) from None
         if not complete:
             raise _truncated(path, f"its compressed voxel stream ends after {found:,} of {needed:,} bytes")
     else:

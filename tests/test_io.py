@@ -140,6 +140,34 @@ class TestReadImage:
         with pytest.raises(InputError, match=message):
             io.read_image(path)
 
+    def test_analyze_pair_with_a_cut_voxel_file(self, volume, tmp_path):
+        """SimpleITK read it with half the voxels 0, and no error."""
+        sitk.WriteImage(volume, str(tmp_path / "v.hdr"))
+        cut(tmp_path / "v.img")
+        assert sitk.GetArrayViewFromImage(sitk.ReadImage(str(tmp_path / "v.hdr"))).shape == SIZE[::-1]
+        for name in ("v.hdr", "v.img"):
+            with pytest.raises(InputError, match=r"v\.img: is truncated \(it holds [\d,]+ bytes, the header v\.hdr "
+                                                 r"needs [\d,]+\)"):
+                io.read_image(tmp_path / name)
+
+    def test_a_plain_nifti_named_nii_gz(self, volume, tmp_path):
+        """Called corrupt before, with the advice to copy it again: the copy is the same file."""
+        sitk.WriteImage(volume, str(tmp_path / "v.nii"))
+        (tmp_path / "v.nii").rename(tmp_path / "v.nii.gz")
+        with pytest.raises(InputError, match=r"v\.nii\.gz: is not gzip-compressed although its name ends in \.gz "
+                                             r".*; rename it to v\.nii$"):
+            io.read_image(tmp_path / "v.nii.gz")
+
+    def test_corrupt_compressed_mha(self, volume, tmp_path):
+        """zlib's error escaped as an internal error."""
+        path = tmp_path / "v.mha"
+        sitk.WriteImage(volume, str(path), useCompression=True)
+        data = bytearray(path.read_bytes())
+        data[-20] ^= 0xFF
+        path.write_bytes(bytes(data))
+        with pytest.raises(InputError, match=r"v\.mha: the compressed voxel data is corrupt \(Error -3"):
+            io.read_image(path)
+
     def test_nii_gz_truncated_inside_its_header(self, volume, tmp_path):
         # nibabel cannot read the header; SimpleITK alone returns this file zero-filled.
         path = tmp_path / "v.nii.gz"
