@@ -36,6 +36,7 @@ from dpcn_med.register import (
     image_pyramid,
     mattes_metric,
     register,
+    resample_moving,
     resolve_device,
     stored_pose_confidence,
 )
@@ -154,6 +155,17 @@ class TestResult:
         assert resampled.GetPixelID() == result.moving_image.GetPixelID()
         a, b = sitk.GetArrayFromImage(resampled), sitk.GetArrayFromImage(fixed)
         assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.99
+
+    def test_integer_images_are_rounded_not_truncated(self):
+        """Truncated towards zero, an int16 CT moved by half a voxel was up to 0.9 HU off, biased by 0.44 HU."""
+        values = np.random.default_rng(3).integers(-1000, 1000, size=(12, 12, 12)).astype(np.int16)
+        image = sitk.GetImageFromArray(values)
+        shift = sitk.TranslationTransform(3, (0.37, -0.5, 0.21))
+        resampled = resample_moving(image, image, shift)
+        exact = sitk.GetArrayFromImage(sitk.Resample(sitk.Cast(image, sitk.sitkFloat64), image, shift,
+                                                     sitk.sitkLinear, float(values.min())))
+        assert resampled.GetPixelID() == sitk.sitkInt16
+        assert np.abs(sitk.GetArrayFromImage(resampled) - exact).max() <= 0.5
 
     def test_summary_is_json(self, result):
         summary = json.loads(json.dumps(result.to_dict()))
