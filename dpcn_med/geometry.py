@@ -251,11 +251,13 @@ def sample(volume: Tensor, points: Tensor) -> Tensor:
 
     Args:
         volume: ``(B, C, D, H, W)`` or ``(B, C, H, W)``.
-        points: ``(B, *S, d)`` voxel coordinates ``(x, y[, z])`` from the grid centre, any sample shape ``S``.
+        points: ``(B, *S, d)`` voxel coordinates ``(x, y[, z])`` from the grid centre, any sample shape ``S``; moved
+            to the volume's device and dtype, as :func:`warp` does (float64 points on a float32 volume raised).
 
     Returns:
         ``(B, C, *S)`` values.
     """
+    points = points.to(device=volume.device, dtype=volume.dtype)
     return _grid_sample(volume, voxel_to_normalized(points, tuple(volume.shape[2:])))
 
 

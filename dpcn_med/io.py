@@ -903,7 +903,13 @@ def write_text(text: str, path: str | os.PathLike) -> None:
 
 def write_csv(rows: list[dict], path: str | os.PathLike, columns: list[str] | None = None) -> None:
     """``rows`` as a CSV table with a header, ``\n`` line ends, atomically: the columns are ``columns`` (other keys
-    ignored) or the first row's keys."""
+    ignored) or the first row's keys.
+
+    Raises:
+        ValueError: no ``rows`` and no ``columns``: there is no header to write.
+    """
+    if not rows and not columns:
+        raise ValueError(f"{path}: no rows and no columns: nothing to write a header from")
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=columns or list(rows[0]), lineterminator="\n",
                             extrasaction="ignore" if columns else "raise")

@@ -206,6 +206,8 @@ class TestWarp:
         values = sample(volume, points)[0, 0]
         centre = volume[0, 0, 2, 2, 2]
         torch.testing.assert_close(values, torch.stack([centre + 0.5, torch.tensor(0.0, dtype=torch.float64)]))
+        single = sample(volume.float(), points)[0, 0]  # float64 points on a float32 volume raised, unlike warp
+        assert single.dtype == torch.float32 and torch.allclose(single.double(), values)
 
 
 class TestSquaredDistance:

@@ -1055,6 +1055,13 @@ class TestCsv:
         io.write_csv(rows, tmp_path / "some.csv", ["tre_mm", "id"])
         assert (tmp_path / "some.csv").read_text() == "tre_mm,id\n0.5,a\n2.0,b\n"
 
+    def test_no_rows(self, tmp_path):
+        io.write_csv([], tmp_path / "empty.csv", ["id", "tre_mm"])
+        assert (tmp_path / "empty.csv").read_text() == "id,tre_mm\n"
+        with pytest.raises(ValueError, match=r"none\.csv: no rows and no columns"):  # was an IndexError
+            io.write_csv([], tmp_path / "none.csv")
+        assert not (tmp_path / "none.csv").exists()
+
     def test_read_back_with_the_types_given(self, tmp_path):
         rows = [{"id": "a", "trial": 0, "tre_mm": 0.5}, {"id": "b", "trial": 1, "tre_mm": 2.25}]
         io.write_csv(rows, tmp_path / "rows.csv")
