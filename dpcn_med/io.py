@@ -53,6 +53,8 @@ direction cosines; a mask's origin may differ by this relative to the coordinate
 
 _GZIP_MAGIC = b"\x1f\x8b"
 _CHUNK = 1 << 20
+_NAME_BYTES = 255
+"""Longest file name most file systems take (ext4, XFS, APFS, NTFS in UTF-16 units)."""
 _INPUT_FORMATS = "NIfTI (.nii, .nii.gz), NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd) or a folder of DICOM slices"
 # Bytes per element of MetaImage's element types (MetaIO's MET_LONG is 32-bit).
 _META_ELEMENT_BYTES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4, "MET_UINT": 4,
@@ -746,6 +748,10 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
         raise InputError(f"{target}: folder {target.parent} does not exist; create it first")
     suffix = _full_suffix(target.name)
     stem = target.name[:len(target.name) - len(suffix)]
+    # The stem shortened as needed: a target name within the file system's 255 bytes gave a temporary name beyond
+    # them (its 14 more bytes), and the write failed with "File name too long".
+    room = _NAME_BYTES - len(f"..tmp{secrets.token_hex(4)}{suffix}".encode())
+    stem = stem.encode()[:max(room, 1)].decode(errors="ignore")
     temporary = target.with_name(f".{stem}.tmp{secrets.token_hex(4)}{suffix}")
     try:
         yield temporary

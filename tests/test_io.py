@@ -659,6 +659,15 @@ class TestAtomicOutput:
             temporary.write_text("done")
         assert target.read_text() == "done" and os.listdir(tmp_path) == ["x.nii.gz"]
 
+    @pytest.mark.parametrize("stem", ["a" * 248, "é" * 124])  # 255 bytes with .nii.gz, 2 bytes a character
+    def test_a_name_at_the_length_limit(self, tmp_path, stem):
+        """The temporary name ran 14 bytes past the target's: 'File name too long'."""
+        volume = sitk.Image(4, 4, 4, sitk.sitkUInt8)
+        volume[1, 2, 3] = 7
+        target = tmp_path / f"{stem}.nii.gz"
+        io.write_image(volume, target)
+        assert os.listdir(tmp_path) == [target.name] and io.read_image(target).GetSize() == (4, 4, 4)
+
     def test_failure_leaves_nothing(self, tmp_path):
         with pytest.raises(KeyError), io.atomic_output(tmp_path / "x.json") as temporary:
             temporary.write_text("half")
