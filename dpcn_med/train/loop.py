@@ -364,8 +364,8 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
             skipped_in_a_row += 1
             if skipped_in_a_row == MAX_SKIPPED_IN_A_ROW:
                 raise InputError(f"training: {MAX_SKIPPED_IN_A_ROW} steps in a row gave non-finite gradients (at "
-                                   f"step {step + 1}); the training has diverged: lower optimiser.learning_rate, or "
-                                   "check the training volumes for empty or constant ones")
+                                 f"step {step + 1}); the training has diverged: lower optimiser.learning_rate, or "
+                                 "check the training volumes for empty or constant ones")
         step += 1
         pairs_since += config.optimiser.batch_size * process.world_size
         bar.update(1)
