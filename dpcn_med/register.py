@@ -43,7 +43,7 @@ from dpcn_med.preprocess import (
 )
 from dpcn_med.solver import SolverConfig, StageTemperatures, solve
 from dpcn_med.solver.translation import phase_translation
-from dpcn_med.solver.validation import MAX_BANDWIDTH, MIN_GRID_SIZE, check_bandwidth, check_mode
+from dpcn_med.solver.validation import check_grid_bandwidth, check_mode
 
 if TYPE_CHECKING:
     from dpcn_med.models import DPCN
@@ -225,8 +225,7 @@ def check_options(*, mode: str, model: str | os.PathLike | None, bandwidth: int,
             a model that cannot be used at this bandwidth.
     """
     mode = check_mode(mode)
-    bandwidth = check_bandwidth(check_integer("bandwidth", bandwidth), 2 * MAX_BANDWIDTH,
-                                minimum=MIN_GRID_SIZE[3] // 2)
+    bandwidth = check_grid_bandwidth(check_integer("bandwidth", bandwidth))
     for name, value in (("fixed_modality", fixed_modality), ("moving_modality", moving_modality)):
         if value not in MODALITIES:
             raise InputError(f"{name} {value!r} is not supported; use one of {', '.join(MODALITIES)}")

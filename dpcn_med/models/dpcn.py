@@ -24,7 +24,7 @@ from dpcn_med.preprocess import Preprocessing
 from dpcn_med.solver import LossWeights, PoseTarget, SolverConfig, SolveResult, StageTemperatures, Temperatures, solve
 from dpcn_med.solver import pose_loss as solver_pose_loss
 from dpcn_med.solver.translation import TranslationEstimate, phase_translation
-from dpcn_med.solver.validation import MAX_BANDWIDTH, MIN_GRID_SIZE, check_bandwidth, check_mode
+from dpcn_med.solver.validation import check_grid_bandwidth, check_mode
 
 MODALITIES = ("ct", "mr", "us")
 PER_CALL_SOLVER_FIELDS = ("bandwidth", "refine", "alternatives", "profile")
@@ -104,7 +104,7 @@ class ModelConfig:
     version: str = __version__
 
     def __post_init__(self) -> None:
-        check_bandwidth(self.bandwidth, 2 * MAX_BANDWIDTH, minimum=MIN_GRID_SIZE[3] // 2)
+        check_grid_bandwidth(self.bandwidth)
         check_mode(self.mode)
         if not all(isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= MAX_CHANNELS for c in self.channels):
             raise InputError(f"channels {self.channels!r}: expected positive integers <= {MAX_CHANNELS}")

@@ -64,8 +64,7 @@ def check_grids(fixed: Tensor, moving: Tensor, dim: int) -> int:
 
 def check_bandwidth(bandwidth: int | None, size: int, *, minimum: int = 4) -> int:
     """The bandwidth to use for grids of size ``size``: ``size // 2`` by default, else ``minimum <= B <= size // 2,
-    128``. Callers whose grids are ``(2B)^3`` pass ``minimum=MIN_GRID_SIZE[3] // 2``, so that a bandwidth giving too
-    small a grid is refused before any work."""
+    128``."""
     if bandwidth is None:
         bandwidth = size // 2
     if isinstance(bandwidth, numbers.Integral) and not isinstance(bandwidth, bool):
@@ -75,6 +74,12 @@ def check_bandwidth(bandwidth: int | None, size: int, *, minimum: int = 4) -> in
         limit = f" (half the grid size {size})" if top < MAX_BANDWIDTH else ""
         raise InputError(f"bandwidth {bandwidth!r} is out of range: use an integer in [{minimum}, {top}]{limit}")
     return bandwidth
+
+
+def check_grid_bandwidth(bandwidth: int) -> int:
+    """A bandwidth ``B`` for callers that build ``(2B)^3`` grids (register, the models, training), refused before any
+    work when the grid would be under :data:`MIN_GRID_SIZE`."""
+    return check_bandwidth(bandwidth, 2 * MAX_BANDWIDTH, minimum=MIN_GRID_SIZE[3] // 2)
 
 
 def check_mode(mode: str) -> str:

@@ -49,7 +49,7 @@ from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.geometry import CanonicalGrid, homogeneous_matrix, scale_and_rotation, similarity_transform
 from dpcn_med.preprocess import PreparedImage, Preprocessing, pair_grids, prepare, resample_to_grid, to_tensor
 from dpcn_med.solver import PoseTarget
-from dpcn_med.solver.validation import MAX_BANDWIDTH, MIN_GRID_SIZE, check_bandwidth
+from dpcn_med.solver.validation import check_grid_bandwidth
 from dpcn_med.synth import slab_mask
 
 FIXED_NAMES = ("fixed", "ct")
@@ -358,7 +358,7 @@ class FolderPairs(torch.utils.data.Dataset):
 
     def __init__(self, root: str | os.PathLike, bandwidth: int, *, preprocessing: Preprocessing | None = None,
                  crop: tuple[float, float] | None = None, seed: int = 0) -> None:
-        check_bandwidth(bandwidth, 2 * MAX_BANDWIDTH, minimum=MIN_GRID_SIZE[3] // 2)
+        check_grid_bandwidth(bandwidth)
         check_crop(crop)
         self.pairs = discover_pairs(root)
         self.bandwidth = bandwidth
