@@ -343,8 +343,8 @@ def _path_cell(value: str | None) -> str:
 
 
 def _read_pairs(path: Path) -> list[dict[str, str | None]]:
-    """The pairs of a pairs file, paths resolved against its folder; a row without an id gets ``NNN-STEM`` (its
-    place among the rows and the moving file's name up to its first dot).
+    """The pairs of a pairs file, paths resolved against its folder (``~`` is the home folder, as in a shell); a row
+    without an id gets ``NNN-STEM`` (its place among the rows and the moving file's name up to its first dot).
 
     Raises:
         InputError: naming the file and line: a missing path, an unknown column or an extra cell, a NUL character in
@@ -368,7 +368,7 @@ def _read_pairs(path: Path) -> list[dict[str, str | None]]:
         cells = {key: (row.get(key) or "").strip() for key in ("fixed", "moving", "fixed_mask", "moving_mask")}
         if any("\0" in value for value in cells.values()):
             raise InputError(f"{path}: line {line}: a path holds a NUL character")
-        pairs.append({"id": pair_id, **{key: str(path.parent / value) if value else None
+        pairs.append({"id": pair_id, **{key: str(path.parent / os.path.expanduser(value)) if value else None
                                         for key, value in cells.items()}})
     return pairs
 

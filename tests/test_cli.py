@@ -569,6 +569,15 @@ class TestBatch:
             assert "summary.csv: is this run's pairs file" in capsys.readouterr().err
         assert table.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["cohort"]
 
+    def test_a_tilde_is_the_home_folder_and_other_paths_are_from_the_pairs_folder(self, tmp_path, monkeypatch):
+        from dpcn_med.cli import _read_pairs
+
+        monkeypatch.setenv("HOME", str(tmp_path / "home"))
+        (tmp_path / "pairs.csv").write_text("fixed,moving,moving_mask\n~/ct.nii.gz,mr.nii.gz,/abs/m.nii\n")
+        assert _read_pairs(tmp_path / "pairs.csv") == [{
+            "id": "001-mr", "fixed": str(tmp_path / "home" / "ct.nii.gz"), "moving": str(tmp_path / "mr.nii.gz"),
+            "fixed_mask": None, "moving_mask": "/abs/m.nii"}]
+
     @pytest.mark.parametrize("text, message", [
         ("a,b\n1,2\n", r"pairs\.csv: no column fixed, moving"),
         ("fixed,moving\n", r"pairs\.csv: no pairs"),

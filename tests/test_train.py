@@ -70,6 +70,13 @@ class TestConfig:
         assert load_config(tmp_path / "paths.yaml").data.volumes == (str(tmp_path / "images" / "ct.nii.gz"),
                                                                       "/abs/mr.nii.gz")
 
+    def test_a_tilde_is_the_home_folder(self, tmp_path, monkeypatch):
+        monkeypatch.setenv("HOME", str(tmp_path / "home"))
+        (tmp_path / "home.yaml").write_text("output: ~/runs/a\ndata: {volumes: [~/ct.nii.gz, mni]}\n")
+        config = load_config(tmp_path / "home.yaml")
+        assert config.output == str(tmp_path / "home" / "runs" / "a")
+        assert config.data.volumes == (str(tmp_path / "home" / "ct.nii.gz"), "mni")
+
     def test_unknown_keys_name_where_they_are(self, tmp_path):
         (tmp_path / "bad.yaml").write_text("optimiser: {lr: 0.1}\n")
         with pytest.raises(InputError, match=r"bad\.yaml: optimiser: unknown keys \['lr'\]"):

@@ -272,7 +272,8 @@ class _UniqueKeyLoader(yaml.SafeLoader):
 
 
 def load_config(path: str | os.PathLike) -> TrainConfig:
-    """Read a YAML training config; relative paths in it are taken from the file's folder.
+    """Read a YAML training config; relative paths in it are taken from the file's folder, and ``~`` is the home
+    folder.
 
     Raises:
         InputNotFoundError: the file is missing.
@@ -299,15 +300,15 @@ def load_config(path: str | os.PathLike) -> TrainConfig:
     folder = path.resolve().parent
 
     def resolve(name: str) -> str:
-        return name if name in BUILT_IN_VOLUMES or os.path.isabs(name) else os.path.normpath(folder / name)
+        name = os.path.expanduser(name)
+        return name if os.path.isabs(name) else os.path.normpath(folder / name)
 
     data = config.data
     data = DataConfig(**{**{f.name: getattr(data, f.name) for f in fields(DataConfig)},
-                         **{key: tuple(resolve(v) for v in getattr(data, key))
+                         **{key: tuple(v if v in BUILT_IN_VOLUMES else resolve(v) for v in getattr(data, key))
                             for key in ("volumes", "validation_volumes", "folders", "validation_folders")}})
-    output = config.output if os.path.isabs(config.output) else os.path.normpath(folder / config.output)
     return TrainConfig(**{**{f.name: getattr(config, f.name) for f in fields(TrainConfig)}, "data": data,
-                          "output": output})
+                          "output": resolve(config.output)})
 
 
 BUILT_IN_VOLUMES = ("mni", "mni-head", "mni-pseudo-ct")
