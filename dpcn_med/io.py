@@ -67,8 +67,8 @@ def read_image(path: str | os.PathLike, *, max_bytes: int | None = None) -> sitk
     """A checked 3-D scalar volume from an image file or a DICOM series folder.
 
     Args:
-        path: .nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd, or a folder holding one DICOM series; ``FOLDER@SERIES_UID``
-            picks one series from a folder holding several.
+        path: .nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd, or a folder holding one DICOM series (slice files, or one
+            multi-frame file); ``FOLDER@SERIES_UID`` picks one series from a folder holding several.
         max_bytes: working memory the volume may take (see :data:`WORKING_COPIES`); default: the memory available
             now.
 
@@ -78,8 +78,9 @@ def read_image(path: str | os.PathLike, *, max_bytes: int | None = None) -> sitk
     Raises:
         InputNotFoundError: the path does not exist.
         InputError: the file is unreadable, truncated, not a 3-D scalar volume, has an absurd spacing or sheared
-            axes, is a DICOM series with unevenly spaced or tilted slices, is a NIfTI whose qform and sform
-            disagree, would not fit in memory, holds NaN or infinite voxels, or is constant.
+            axes, is a DICOM series with unevenly spaced or tilted slices or of several multi-frame files, is a
+            NIfTI whose qform and sform disagree, would not fit in memory, holds NaN or infinite voxels, or is
+            constant.
     """
     name = os.fspath(path)
     return check_volume(_read_volume(name, max_bytes), name)
@@ -220,17 +221,23 @@ def _read_volume(name: str, max_bytes: int | None) -> sitk.Image:
         raise InputNotFoundError(f"{name}: not found (no such file or folder); check the path")
     if os.path.isdir(name):
         return _read_dicom(name, Path(name), None, max_bytes)
+    return _read_file(name, name, max_bytes)
+
+
+def _read_file(name: str, filename: str, max_bytes: int | None) -> sitk.Image:
+    """The image file ``filename`` (a DICOM series' one multi-frame file, or ``name`` itself), messages naming
+    ``name``."""
     reader = sitk.ImageFileReader()
-    reader.SetFileName(name)
+    reader.SetFileName(filename)
     try:
         reader.ReadImageInformation()
     except RuntimeError as error:
         raise InputError(f"{name}: not a readable image ({_sitk_reason(error)}); expected {_INPUT_FORMATS}") from None
-    single_dicom = sitk.ImageFileReader.GetImageIOFromFileName(name) == "GDCMImageIO"
+    single_dicom = sitk.ImageFileReader.GetImageIOFromFileName(filename) == "GDCMImageIO"
     _check_shape(name, reader.GetDimension(), reader.GetSize(), reader.GetNumberOfComponents(), single_dicom)
     _check_spacing(name, reader.GetSpacing())
     check_memory(name, reader.GetSize(), max_bytes)
-    _check_complete(Path(name))
+    _check_complete(Path(filename))
     try:
         return reader.Execute()
     except RuntimeError as error:
@@ -276,12 +283,21 @@ def _read_series(name: str, folder: Path, uid: str | None, max_bytes: int | None
     elif uid not in files:
         raise InputError(f"{name}: {folder} holds no DICOM series with UID {uid}; it holds "
                          f"{_series_listing(files)}; choose one as {folder}@UID")
+    try:
+        frame_size = _file_information(files[uid][0]).GetSize()
+    except RuntimeError as error:
+        raise InputError(f"{name}: DICOM series {uid} cannot be read ({_sitk_reason(error)}); check that its "
+                         "files are complete") from None
+    if len(frame_size) == 3 and frame_size[2] > 1:  # enhanced (multi-frame) DICOM: one file holds the whole volume
+        if len(files[uid]) == 1:
+            return _read_file(name, files[uid][0], max_bytes)
+        raise InputError(f"{name}: DICOM series {uid} is {len(files[uid])} multi-frame files of {frame_size[2]} "
+                         "frames each (volumes or time points, which ITK would stack as 4-D); pass one file's path")
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames(files[uid])
     reader.MetaDataDictionaryArrayUpdateOn()
     try:
-        slice_size = _file_information(files[uid][0]).GetSize()
-        check_memory(name, (*slice_size[:2], len(files[uid])), max_bytes)
+        check_memory(name, (*frame_size[:2], len(files[uid])), max_bytes)
         image = reader.Execute()
     except RuntimeError as error:
         raise InputError(f"{name}: DICOM series {uid} cannot be read ({_sitk_reason(error)}); check that its "

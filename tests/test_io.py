@@ -6,6 +6,7 @@ import json
 import math
 import os
 import re
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -437,6 +438,20 @@ class TestReadImageDicom:
                                      step_mm=1.0, decimals=2)
         read = io.read_image(tmp_path)
         np.testing.assert_allclose(read.GetDirection(), written.GetDirection(), atol=1e-3)
+
+    def test_a_folder_holding_one_multi_frame_file(self, tmp_path):
+        """Enhanced DICOM keeps a whole volume in one file: its folder read 4-D, and the memory check counted one
+        frame."""
+        volume = sitk.GetImageFromArray(np.random.default_rng(0).integers(0, 1000, (12, 24, 20), dtype=np.uint16))
+        volume.SetSpacing((1.0, 1.0, 2.0))
+        sitk.WriteImage(volume, str(tmp_path / "enhanced.dcm"))
+        read = io.read_image(tmp_path)
+        assert read.GetSize() == (20, 24, 12) and read.GetSpacing() == (1.0, 1.0, 2.0)
+        with pytest.raises(InputError, match=r"size \(20, 24, 12\) \(5,760 voxels\) needs about"):
+            io.read_image(tmp_path, max_bytes=50_000)
+        shutil.copy(tmp_path / "enhanced.dcm", tmp_path / "copy.dcm")
+        with pytest.raises(InputError, match=r"is 2 multi-frame files of 12 frames each .*; pass one file's path"):
+            io.read_image(tmp_path)
 
     def test_single_slice_file(self, tmp_path):
         write_dicom_series(tmp_path, "1.2.3.1", "axial CT", slices=2)
