@@ -25,6 +25,8 @@ def shown(value: Any) -> str:
 
 def _number(value: float) -> str:
     """A bound as written: ``4294967295``, not ``4.29497e+09``."""
+    if isinstance(value, int):
+        return str(value)
     return str(int(value)) if float(value).is_integer() and abs(value) < 1e16 else repr(float(value))
 
 
@@ -49,13 +51,13 @@ def check_integer(name: str, value: Any, *, minimum: int | None = None, maximum:
 
 
 def check_real(name: str, value: Any, *, minimum: float | None = None, maximum: float | None = None,
-               above: bool = False, below: bool = False) -> float:
+               above: bool = False, below: bool = False, note: str = "") -> float:
     """``value`` as a finite ``float`` (ints and numpy scalars accepted, ``bool`` refused) within the bounds.
 
-    ``above`` / ``below`` make the minimum / maximum exclusive.
+    ``above`` / ``below`` make the minimum / maximum exclusive; ``note`` ends the message.
     """
     bounds = _range(minimum, maximum, above, below)
-    expected = f"a finite number{' ' + bounds if bounds else ''}"
+    expected = f"a finite number{' ' + bounds if bounds else ''}{note}"
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise InputError(f"{name} is {shown(value)}; expected {expected}")
     try:

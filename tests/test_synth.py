@@ -78,6 +78,8 @@ class TestRandomPoses:
         ({"scale_range": (-1.0, -0.5)}, r"^scale_range is \(-1.0, -0.5\); expected \(low, high\) with 0 < low"),
         ({"scale_range": (1.2, 0.8)}, r"^scale_range is \(1.2, 0.8\); expected \(low, high\) with 0 < low <= high$"),
         ({"scale_range": (0.8, math.inf)}, r"^scale_range\[1\] is inf; expected a finite number$"),
+        ({"seed": -1}, r"^seed is -1; expected an integer >= 0 and <= 9223372036854775807$"),
+        ({"seed": 1.5}, r"^seed is 1.5 \(float\); expected an integer >= 0"),
     ])
     def test_invalid_arguments(self, options, message):
         arguments = {"count": 2, "size": 32, "seed": 0} | options
@@ -142,6 +144,14 @@ class TestPseudoCT:
                                for seed in (3, 3, 4))
         np.testing.assert_array_equal(first, again)
         assert 5 < np.std(first[:5, :5, :5].astype(float) - other[:5, :5, :5]) / math.sqrt(2) < 20
+
+    def test_an_mr_without_signal_in_the_brain_mask_is_refused(self):
+        """The white matter level was 0: values / 0 became 0 HU over the skull and half the air, silently."""
+        images = _phantom()
+        mr = images["mr"] * sitk.Cast(images["brain"] == 0, images["mr"].GetPixelID())
+        with pytest.raises(InputError, match=r"^brain mask: the MR's white matter level inside it is 0; expected a "
+                                             r"positive T1 magnitude"):
+            pseudo_ct(mr, bone=images["bone"], brain=images["brain"])
 
     def test_negative_seed_is_refused(self):
         images = _phantom()

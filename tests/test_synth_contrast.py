@@ -59,6 +59,8 @@ class TestCommon:
     @pytest.mark.parametrize("shape,message", [
         ((16, 16, 16), r"shape \(16, 16, 16\); expected a batch of volumes \(B, 1, D, H, W\)"),
         ((1, 2, 8, 8, 8), r"shape \(1, 2, 8, 8, 8\)"),
+        # one voxel along an axis divided by zero in the grid's coordinates
+        ((1, 1, 8, 3, 8), r"^volume has spatial shape \(8, 3, 8\); expected at least 4 voxels along each axis$"),
     ])
     def test_malformed_volumes_are_refused(self, function, shape, message):
         with pytest.raises(InputError, match=message):
@@ -109,8 +111,8 @@ class TestRandomIntensityMap:
                                        rtol=0)
 
     @pytest.mark.parametrize("options,message", [
-        ({"knots": 1}, "^knots is 1; expected an integer >= 2$"),
-        ({"knots": 2.5}, r"^knots is 2.5 \(float\); expected an integer >= 2$"),
+        ({"knots": 1}, "^knots is 1; expected an integer >= 2 and <= 64$"),
+        ({"knots": 2.5}, r"^knots is 2.5 \(float\); expected an integer >= 2 and <= 64$"),
         ({"monotonic": "false"}, r"^monotonic is 'false' \(str\); expected True or False$"),
     ])
     def test_bad_arguments(self, options, message):
@@ -138,7 +140,7 @@ class TestBiasField:
         torch.testing.assert_close(bias_field(volume, _seeded(2), strength=0.0), volume, rtol=0, atol=0)
 
     @pytest.mark.parametrize("options,message", [
-        ({"order": 0}, "^order is 0; expected an integer >= 1$"),
+        ({"order": 0}, "^order is 0; expected an integer >= 1 and <= 10$"),
         ({"strength": math.nan}, "^strength is nan; expected a finite number >= 0 and <= 80$"),
         ({"strength": math.inf}, "^strength is inf; expected a finite number >= 0 and <= 80$"),
         ({"strength": -0.1}, "^strength is -0.1; expected a finite number >= 0 and <= 80$"),
@@ -255,9 +257,19 @@ class TestRandomModality:
         middle = out[:, 0][:, labels == 3].median(-1).values
         assert ((bright > middle).any() and (bright < middle).any()).item()
 
-    def test_too_strong_a_bias_is_refused(self):
-        with pytest.raises(InputError, match="^bias_strength is 100.0; expected a finite number >= 0 and <= 80$"):
-            ContrastConfig(bias_strength=100.0)
+    @pytest.mark.parametrize("options,message", [
+        ({"bias_strength": 100.0}, r"^bias_strength is 100.0; expected a finite number >= 0 and <= 80$"),
+        ({"knots": 10 ** 8}, r"^knots is 100000000; expected an integer >= 2 and <= 64$"),
+        ({"bias_order": 40}, r"^bias_order is 40; expected an integer >= 1 and <= 10$"),
+        # sigma 1e4 took 33 s and left a blank volume; std 1e30 a constant one
+        ({"sigma_range": (0.0, 1e4)}, r"^sigma_range is \(0.0, 10000.0\); expected \(low, high\) with 0 <= low <= "
+                                      r"high <= 8$"),
+        ({"noise_std_range": (0.0, 1e30)}, r"^noise_std_range is \(0.0, 1e\+30\); expected \(low, high\) with 0 <= "
+                                           r"low <= high <= 1$"),
+    ])
+    def test_settings_that_give_blank_volumes_or_take_too_long_are_refused(self, options, message):
+        with pytest.raises(InputError, match=message):
+            ContrastConfig(**options)
 
     def test_without_acquisition_effects_it_is_an_intensity_map(self):
         quiet = ContrastConfig(bias_strength=0.0, sigma_range=(0.0, 0.0), factor_range=(1.0, 1.0),

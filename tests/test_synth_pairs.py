@@ -178,7 +178,13 @@ class TestInvalidArguments:
         ({"fixed_modality": "mr"}, "fixed_modality 'mr' is not supported; use one of random, identity, ultrasound"),
         ({"scale_range": (0.0, 1.0)}, r"scale_range is \(0.0, 1.0\); expected \(low, high\) with 0 < low <= high$"),
         ({"scale_range": (1.0, "2")}, r"scale_range\[1\] is '2' \(str\); expected a finite number$"),
-        ({"crop_probability": 1.5}, r"crop_probability is 1.5; expected a probability in \[0, 1\]"),
+        ({"crop_probability": 1.5}, r"^crop_probability is 1.5; expected a finite number >= 0 and <= 1 \(a "
+                                    r"probability\)$"),
+        ({"crop_probability": True}, r"^crop_probability is True \(bool\); expected a finite number >= 0 and <= 1"),
+        # compared with 0 before: TypeError
+        ({"max_shift_fraction": "0.1"}, r"^max_shift_fraction is '0.1' \(str\); expected a finite number >= 0 and "
+                                        r"<= 0.5 \(a fraction of N: a shift past half the grid is a wrap-around"),
+        ({"max_shift_fraction": 0.6}, r"^max_shift_fraction is 0.6; expected a finite number >= 0 and <= 0.5 \("),
     ])
     def test_bad_configuration(self, options, message):
         with pytest.raises(InputError, match=message):

@@ -88,10 +88,14 @@ class TestSimulatedUltrasound:
         for out in (ultrasound, fov):
             assert out.shape == ct.shape and out.device == ct.device and out.dtype == dtype
 
-    def test_a_strong_impedance_contrast_stays_finite(self):
-        # exp(impedance_gain * ct) overflowed float32 from a gain of 89: inf / inf made every voxel NaN.
-        strong = UltrasoundConfig(half_angle_degrees=(35.0, 35.0), depth_range=(0.8, 0.8), impedance_gain=200.0)
-        ultrasound, fov = simulated_ultrasound(_phantom().float(), _seeded(1), probe=ALONG_Z, config=strong)
+    @pytest.mark.parametrize("options", [
+        {"impedance_gain": 30.0},  # exp(impedance_gain * ct) overflowed float32 from a gain of 89: inf / inf, NaN
+        {"attenuation": 100.0, "bone_attenuation": 1000.0},  # strongest absorption: cumsum - itself was inf - inf
+        {"reflection_gain": 1e300, "scatter_gain": 1e-300},  # 1e300 is inf in float32, inf * 0 NaN
+    ])
+    def test_extreme_settings_stay_finite_and_echo(self, options):
+        extreme = UltrasoundConfig(half_angle_degrees=(35.0, 35.0), depth_range=(0.8, 0.8), **options)
+        ultrasound, fov = simulated_ultrasound(_phantom().float(), _seeded(1), probe=ALONG_Z, config=extreme)
         assert torch.isfinite(ultrasound).all() and (ultrasound[fov == 1] > 0).any()
 
     @pytest.mark.parametrize("probe,message", [
@@ -119,16 +123,19 @@ class TestSimulatedUltrasound:
 
 class TestUltrasoundConfig:
     @pytest.mark.parametrize("options,message", [
-        ({"half_angle_degrees": (0.0, 0.0)}, r"^half_angle_degrees is \(0.0, 0.0\); expected \(low, high\) with 0 <"),
-        ({"half_angle_degrees": (0.0, 30.0)}, r"^half_angle_degrees is \(0.0, 30.0\); expected \(low, high\) "
-                                              r"with 0 < low <= high <= 89$"),
-        ({"depth_range": (0.0, 0.0)}, r"^depth_range is \(0.0, 0.0\); expected \(low, high\) with 0 < low <= high <= 2 "
-                                      r"\(fractions of the grid side N\)$"),
-        ({"depth_range": (100.0, 100.0)}, r"^depth_range is \(100.0, 100.0\); expected \(low, high\) with 0 < low"),
-        ({"depth_range": (0.8, 0.4)}, r"^depth_range is \(0.8, 0.4\); expected \(low, high\) with 0 < low"),
+        ({"half_angle_degrees": (0.0, 0.0)}, r"^half_angle_degrees is \(0.0, 0.0\); expected \(low, high\) with 5 <="),
+        ({"half_angle_degrees": (1.0, 30.0)}, r"^half_angle_degrees is \(1.0, 30.0\); expected \(low, high\) "
+                                              r"with 5 <= low <= high <= 89$"),
+        ({"depth_range": (0.05, 0.05)}, r"^depth_range is \(0.05, 0.05\); expected \(low, high\) with 0.1 <= low <= "
+                                        r"high <= 2 \(fractions of the grid side N\)$"),
+        ({"depth_range": (100.0, 100.0)}, r"^depth_range is \(100.0, 100.0\); expected \(low, high\) with 0.1 <= low"),
+        ({"depth_range": (0.8, 0.4)}, r"^depth_range is \(0.8, 0.4\); expected \(low, high\) with 0.1 <= low"),
         ({"depth_range": (0.4, math.inf)}, r"^depth_range\[1\] is inf; expected a finite number$"),
+        ({"standoff": 10.0}, r"^standoff is 10.0; expected a finite number >= 0 and <= 1$"),
         ({"impedance_gain": math.nan}, "^impedance_gain is nan; expected a finite number >= 0"),
-        ({"impedance_gain": 1e39}, r"^impedance_gain is 1e\+39; expected a finite number >= 0 and <= 3.4"),
+        ({"impedance_gain": 200.0}, r"^impedance_gain is 200.0; expected a finite number >= 0 and <= 30$"),
+        ({"attenuation": 1e300}, r"^attenuation is 1e\+300; expected a finite number >= 0 and <= 100$"),
+        ({"bone_attenuation": 3e38}, r"^bone_attenuation is 3e\+38; expected a finite number >= 0 and <= 1000$"),
         ({"reflection_gain": 0.0, "scatter_gain": 0.0}, "^reflection_gain and scatter_gain are both 0"),
     ])
     def test_settings_that_give_nan_or_blank_volumes_are_refused(self, options, message):

@@ -29,7 +29,7 @@ from dpcn_med.preprocess import foreground_box
 from dpcn_med.samples import mni152_t1
 from dpcn_med.train import DataConfig, OptimiserConfig, TrainConfig, load_config, train
 from dpcn_med.train.data import volume_bank
-from dpcn_med.train.loop import learning_rate
+from dpcn_med.train.loop import learning_rate, pair_stream_seed
 
 TINY_YAML = """
 output: run
@@ -169,7 +169,7 @@ BAD_CONFIGS = {  # (text of TINY_YAML, its replacement, the message's key words)
     "nan_standoff": ("max_shift_fraction: 0.1", "max_shift_fraction: 0.1, ultrasound: {standoff: .nan}",
                      r"data\.pair\.ultrasound\.standoff is nan"),
     "shift_past_half": ("max_shift_fraction: 0.1", "max_shift_fraction: 100", r"data\.pair\.max_shift_fraction is "
-                        r"100\.0; expected a fraction of N in \[0, 0\.5\]"),
+                        r"100\.0; expected a finite number >= 0 and <= 0\.5 \(a fraction of N"),
     "unknown_device": ("device: cpu", "device: gpu", r"tiny\.yaml: device is 'gpu'; expected auto, cpu, cuda or "
                        "cuda:N"),
     "zero_temperature": ("residual_units: 0,", "residual_units: 0, temperatures: [0, 1, 1],",
@@ -272,6 +272,12 @@ class TestLearningRate:
         assert rates[0] == pytest.approx(0.1) and rates[9] == pytest.approx(1.0)
         assert all(a >= b for a, b in zip(rates[10:], rates[11:]))
         assert rates[100] == pytest.approx(0.1)
+
+
+def test_every_rank_and_start_step_draws_its_own_pairs():
+    """rank 0 resumed at step 7919 drew the pairs of rank 1 from step 0 (seed * 1_000_003 + rank * 7_919 + step)."""
+    seeds = {pair_stream_seed(seed, rank, step) for seed in (0, 1) for rank in (0, 1, 2) for step in (0, 1, 7919)}
+    assert len(seeds) == 18 and pair_stream_seed(0, 0, 7919) == pair_stream_seed(0, 0, 7919)
 
 
 class TestTrain:

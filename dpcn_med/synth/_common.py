@@ -11,12 +11,20 @@ from torch import Tensor
 
 from dpcn_med.errors import InputError
 
+MIN_SIZE = 4
+"""Fewest voxels along an axis (as :func:`dpcn_med.io.read_image` asks): one voxel divided by zero in the grids'
+coordinates, two gave a blank ultrasound."""
+
 
 def check_volumes(name: str, volumes: Tensor, *, cubic: bool = False) -> int:
-    """Refuse anything but a finite float32 or float64 batch ``(B, 1, D, H, W)`` (cubic when asked); return ``D``."""
+    """Refuse anything but a finite float32 or float64 batch ``(B, 1, D, H, W)`` with at least :data:`MIN_SIZE`
+    voxels along each axis (cubic when asked); return ``D``."""
     if volumes.dim() != 5 or volumes.shape[1] != 1 or min(volumes.shape, default=0) == 0:
         raise InputError(f"{name} has shape {tuple(volumes.shape)}; expected a batch of volumes (B, 1, D, H, W) in "
                          "torch order (z, y, x)")
+    if min(volumes.shape[2:]) < MIN_SIZE:
+        raise InputError(f"{name} has spatial shape {tuple(volumes.shape[2:])}; expected at least {MIN_SIZE} voxels "
+                         "along each axis")
     # Half precision is refused too: the poses' matrix inverse (torch.linalg.inv) has no float16 or bfloat16 kernel.
     if volumes.dtype not in (torch.float32, torch.float64):
         raise InputError(f"{name} has dtype {volumes.dtype}; expected float32 or float64 intensities in [0, 1]")

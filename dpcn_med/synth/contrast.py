@@ -23,19 +23,34 @@ MAX_BIAS_STRENGTH = 80.0
 the background's ``0 * inf`` is NaN)."""
 
 
+MAX_KNOTS = 64
+"""Most control points of an intensity map: more is noise on the intensities, and ``B x knots`` draws."""
+
+MAX_BIAS_ORDER = 10
+"""Highest degree of a bias field: a coil's field is smooth, and ``(order + 1)^3`` coefficients are drawn."""
+
+MAX_SIGMA = 8.0
+"""Largest blur sigma, voxels: the kernel reaches ``3 sigma`` (time grows with it), and sigma 100 left a blank
+volume (peak 1e-5)."""
+
+MAX_NOISE_STD = 1.0
+"""Largest noise standard deviation: on intensities in ``[0, 1]`` more is pure noise (1e30 gave a constant 1)."""
+
+
 @dataclass(frozen=True)
 class ContrastConfig:
     """Ranges of a random modality (:func:`random_modality`); the defaults of every function in this module.
 
     Attributes:
-        knots: control points of the random intensity map, equally spaced over ``[0, 1]``.
+        knots: control points of the random intensity map, equally spaced over ``[0, 1]``; 2 to :data:`MAX_KNOTS`.
         monotonic: increasing intensity maps only (same contrast family) instead of any map (bone bright on one,
             dark on the other).
         bias_strength: largest ``|log|`` of the multiplicative bias field, at most :data:`MAX_BIAS_STRENGTH`.
-        bias_order: highest total degree of the field's Legendre polynomials.
-        sigma_range: Gaussian blur, voxels.
+        bias_order: highest total degree of the field's Legendre polynomials, 1 to :data:`MAX_BIAS_ORDER`.
+        sigma_range: Gaussian blur, voxels, at most :data:`MAX_SIGMA`.
         factor_range: slice thickness, in voxels, of the resolution loss along one axis (1 = none).
-        noise_std_range: standard deviation of the additive noise (intensities in ``[0, 1]``).
+        noise_std_range: standard deviation of the additive noise (intensities in ``[0, 1]``), at most
+            :data:`MAX_NOISE_STD`.
         rician: magnitude (Rician) noise as in MR, instead of Gaussian.
     """
 
@@ -50,13 +65,13 @@ class ContrastConfig:
 
     def __post_init__(self) -> None:
         """Refuse what would make NaN or blank volumes (a NaN bias strength did), naming the field."""
-        check_integer("knots", self.knots, minimum=2)
+        check_integer("knots", self.knots, minimum=2, maximum=MAX_KNOTS)
         check_flag("monotonic", self.monotonic)
         check_real("bias_strength", self.bias_strength, minimum=0.0, maximum=MAX_BIAS_STRENGTH)
-        check_integer("bias_order", self.bias_order, minimum=1)
-        check_pair("sigma_range", self.sigma_range, minimum=0.0, equal=True)
+        check_integer("bias_order", self.bias_order, minimum=1, maximum=MAX_BIAS_ORDER)
+        check_pair("sigma_range", self.sigma_range, minimum=0.0, maximum=MAX_SIGMA, equal=True)
         check_pair("factor_range", self.factor_range, minimum=1.0, equal=True)
-        check_pair("noise_std_range", self.noise_std_range, minimum=0.0, equal=True)
+        check_pair("noise_std_range", self.noise_std_range, minimum=0.0, maximum=MAX_NOISE_STD, equal=True)
         check_flag("rician", self.rician)
 
 
@@ -76,14 +91,14 @@ def random_intensity_map(volume: Tensor, generator: torch.Generator, *, knots: i
     Args:
         volume: ``(B, 1, D, H, W)`` intensities in ``[0, 1]`` (values outside are clipped), exactly 0 in the background.
         generator: source of randomness.
-        knots: number of control points, at least 2.
+        knots: number of control points, 2 to :data:`MAX_KNOTS`.
         monotonic: sort the control points' outputs, so the map is increasing.
 
     Returns:
         ``(B, 1, D, H, W)`` in ``[0, 1]``, 0 exactly where ``volume`` is 0.
     """
     check_volumes("volume", volume)
-    knots = check_integer("knots", knots, minimum=2)
+    knots = check_integer("knots", knots, minimum=2, maximum=MAX_KNOTS)
     check_flag("monotonic", monotonic)
     outputs = uniform(generator, (volume.shape[0], knots), 0.0, 1.0, like=volume)
     if monotonic:
@@ -117,7 +132,7 @@ def bias_field(volume: Tensor, generator: torch.Generator, *, strength: float = 
         volume: ``(B, 1, D, H, W)``.
         generator: source of randomness.
         strength: largest ``|log|`` of the field, in ``[0, MAX_BIAS_STRENGTH]``.
-        order: highest total degree, at least 1.
+        order: highest total degree, 1 to :data:`MAX_BIAS_ORDER`.
 
     Returns:
         ``(B, 1, D, H, W)`` ``volume * field``: the background stays 0, the foreground may exceed 1.
@@ -125,7 +140,7 @@ def bias_field(volume: Tensor, generator: torch.Generator, *, strength: float = 
     # Written out rather than MONAI's RandBiasField: that one draws from numpy, one volume at a time, on the host.
     check_volumes("volume", volume)
     strength = check_real("strength", strength, minimum=0.0, maximum=MAX_BIAS_STRENGTH)
-    order = check_integer("order", order, minimum=1)
+    order = check_integer("order", order, minimum=1, maximum=MAX_BIAS_ORDER)
     batch = volume.shape[0]
     size = order + 1
     degree = torch.arange(size, device=volume.device)
@@ -164,13 +179,13 @@ def blur(volume: Tensor, generator: torch.Generator, *,
     Args:
         volume: ``(B, 1, D, H, W)``.
         generator: source of randomness.
-        sigma_range: sigma in voxels, uniform in this interval (lower bound at least 0).
+        sigma_range: sigma in voxels, uniform in this interval inside ``[0, MAX_SIGMA]``.
 
     Returns:
         ``(B, 1, D, H, W)``; zero padding, so the background far from the foreground stays 0.
     """
     check_volumes("volume", volume)
-    check_pair("sigma_range", sigma_range, minimum=0.0, equal=True)
+    check_pair("sigma_range", sigma_range, minimum=0.0, maximum=MAX_SIGMA, equal=True)
     return _gaussian_blur(volume, uniform(generator, (volume.shape[0],), *sigma_range, like=volume))
 
 
@@ -213,7 +228,8 @@ def noise(volume: Tensor, generator: torch.Generator, *,
     Args:
         volume: ``(B, 1, D, H, W)``.
         generator: source of randomness.
-        std_range: standard deviation of each Gaussian channel, uniform in this interval (lower bound at least 0).
+        std_range: standard deviation of each Gaussian channel, uniform in this interval inside
+            ``[0, MAX_NOISE_STD]``.
         rician: Rician (True) or Gaussian noise.
 
     Returns:
@@ -221,7 +237,7 @@ def noise(volume: Tensor, generator: torch.Generator, *,
     """
     # Written out rather than MONAI's RandGaussianNoise / RandRicianNoise: those draw from numpy on the host.
     check_volumes("volume", volume)
-    check_pair("std_range", std_range, minimum=0.0, equal=True)
+    check_pair("std_range", std_range, minimum=0.0, maximum=MAX_NOISE_STD, equal=True)
     check_flag("rician", rician)
     std = _per_sample(uniform(generator, (volume.shape[0],), *std_range, like=volume))
     real = volume + std * normal(generator, tuple(volume.shape), like=volume)

@@ -66,12 +66,10 @@ class PairConfig:
         check_pair("overlap_range", self.overlap_range, minimum=0.0, maximum=1.0, above=True, equal=True,
                    note=" (the fraction of the foreground the fixed volume keeps)")
         check_pair("scale_range", self.scale_range, minimum=0.0, above=True, equal=True)
-        if not 0 <= self.crop_probability <= 1:
-            raise InputError(f"crop_probability is {self.crop_probability}; expected a probability in [0, 1]")
-        if not 0 <= self.max_shift_fraction <= 0.5:  # a circular correlation tells a shift only up to N / 2
-            raise InputError(f"max_shift_fraction is {self.max_shift_fraction}; expected a fraction of N in [0, 0.5] "
-                             "(a shift past half the grid is a wrap-around to phase correlation, and moves the object "
-                             "off the grid)")
+        check_real("crop_probability", self.crop_probability, minimum=0.0, maximum=1.0, note=" (a probability)")
+        check_real("max_shift_fraction", self.max_shift_fraction, minimum=0.0, maximum=0.5,
+                   note=" (a fraction of N: a shift past half the grid is a wrap-around to phase correlation, and "
+                   "moves the object off the grid)")
 
 
 def _random_poses(batch: int, size: int, generator: torch.Generator, config: PairConfig, like: Tensor) -> PoseTarget:
@@ -110,7 +108,7 @@ def slab_mask(foreground: Tensor, fraction: float, axis: int, from_end: bool) ->
     if from_end:
         profile = profile.flip(0)
     kept = profile.cumsum(0) / profile.sum().clamp_min(1.0)
-    end = int(torch.searchsorted(kept, torch.tensor([fraction], dtype=kept.dtype))) + 1
+    end = int(torch.searchsorted(kept, torch.tensor([fraction], dtype=kept.dtype, device=kept.device))) + 1
     inside = torch.zeros_like(profile)
     inside[:end] = 1.0
     if from_end:

@@ -64,7 +64,7 @@ def random_poses(count: int, size: int, seed: int, *, similarity: bool = True, d
     Args:
         count: how many, at least 0.
         size: grid size ``N``, at least 1; shifts default to at most ``0.2 N``.
-        seed: seed of the generator (the same seed gives the same poses).
+        seed: seed of the generator, in ``[0, 2^63)`` (the same seed gives the same poses).
         similarity: draw a scale in ``scale_range`` (True) or keep 1.
         dim: 3 (rotation uniform over SO(3)) or 2 (angle uniform in ``[0, 2 pi)``).
         scale_range: scale interval, ``0 < low <= high``.
@@ -82,7 +82,7 @@ def random_poses(count: int, size: int, seed: int, *, similarity: bool = True, d
     similarity = check_flag("similarity", similarity)
     dim = check_integer("dim", dim, minimum=2, maximum=3)
     scale_range = check_pair("scale_range", scale_range, minimum=0.0, above=True, equal=True)
-    generator = torch.Generator().manual_seed(seed)
+    generator = torch.Generator().manual_seed(check_integer("seed", seed, minimum=0, maximum=2 ** 63 - 1))
     limit = 0.2 * size if max_shift is None else check_real("max_shift", max_shift, minimum=0.0)
     poses = []
     for _ in range(count):

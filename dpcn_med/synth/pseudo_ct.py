@@ -108,7 +108,8 @@ def pseudo_ct(mr: sitk.Image, *, bone: sitk.Image, brain: sitk.Image | None = No
         int16 image in HU with the MR's size, origin, spacing and direction.
 
     Raises:
-        InputError: ``mr`` is not a 3-D scalar volume, a mask is not on its grid, or ``seed`` is not an integer >= 0.
+        InputError: ``mr`` is not a 3-D scalar volume, a mask is not on its grid, the MR is not positive in the
+            brain mask, or ``seed`` is not an integer >= 0.
     """
     seed = check_integer("seed", seed, minimum=0)
     if mr.GetDimension() != 3 or mr.GetNumberOfComponentsPerPixel() != 1:
@@ -125,7 +126,11 @@ def pseudo_ct(mr: sitk.Image, *, bone: sitk.Image, brain: sitk.Image | None = No
     hu[head_mask] = np.interp(scaled[head_mask], (0.0, 1.0), tissues.soft_tissue)
     values = sitk.GetArrayViewFromImage(mr)[brain_mask].astype(np.float32)
     if values.size:
-        hu[brain_mask] = np.interp(values / _white_matter_level(values), tissues.t1_ratios,
+        level = _white_matter_level(values)
+        if not level > 0:  # values / 0 was NaN, blurred over the skull and cast to 0 HU without a word
+            raise InputError(f"brain mask: the MR's white matter level inside it is {level:g}; expected a positive "
+                             "T1 magnitude (is the mask on the MR's background, or the MR not a magnitude image?)")
+        hu[brain_mask] = np.interp(values / level, tissues.t1_ratios,
                                    (tissues.csf, tissues.grey_matter, tissues.white_matter))
     # Depth below the surface voxels, from the distance to the nearest voxel outside the bone: Maurer's values inside
     # a mask are distances to its 26-connected surface voxels, which leave almost no inside to a thin shell.

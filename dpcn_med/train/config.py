@@ -120,7 +120,8 @@ class TrainConfig:
         model: the network (:class:`dpcn_med.models.ModelConfig`).
         data: the pairs.
         optimiser: the optimisation.
-        seed: of the pairs and the initial weights (rank ``r`` draws pairs with ``seed + r``).
+        seed: of the pairs and the initial weights (each rank, and each resumed start, draws its own stream of
+            synthetic pairs; rank ``r`` crops real pairs with ``seed + r``).
         device: ``auto``, ``cpu``, ``cuda`` (under torchrun, each process takes ``cuda:LOCAL_RANK``).
         log_every, validate_every, checkpoint_every: in steps.
         resume: continue from ``output/checkpoint`` when it exists (which must have been made with this model, data

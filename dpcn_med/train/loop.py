@@ -20,6 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 import torch.distributed as dist
 from torch import Tensor
@@ -89,6 +90,13 @@ def evaluate(model: DPCN, pairs: list[tuple[Tensor, Tensor, PoseTarget]]) -> dic
     success = ((rotation < SUCCESS_DEGREES) & (translation < SUCCESS_VOXELS)).double().mean()
     return {"success": success.item(), "rotation_error_deg": rotation.median().item(),
             "translation_error_vox": translation.median().item()}
+
+
+def pair_stream_seed(seed: int, rank: int, step: int) -> int:
+    """The seed of the synthetic pairs a rank draws from ``step`` on: one stream per (seed, rank, start step), so a
+    resumed run draws new pairs, not the old ones, nor another rank's (``seed * 1_000_003 + rank * 7_919 + step``
+    gave rank 0 resumed at step 7919 the pairs of rank 1 from step 0)."""
+    return int(np.random.SeedSequence([seed, rank, step]).generate_state(1)[0])
 
 
 def _real_pairs(roots: tuple[str, ...], config: TrainConfig, *, crop: tuple[float, float] | None, seed: int
@@ -310,8 +318,7 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
         network = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[process.device] if process.device.type == "cuda" else None,
             find_unused_parameters=True)  # rigid mode leaves the scale temperature unused
-    generator = torch.Generator(device=process.device).manual_seed(
-        config.seed * 1_000_003 + process.rank * 7_919 + step)  # a resumed run draws new pairs, not the old ones
+    generator = torch.Generator(device=process.device).manual_seed(pair_stream_seed(config.seed, process.rank, step))
     real = _real_pairs(config.data.folders, config, crop=config.data.folder_crop, seed=config.seed + process.rank)
     validation, real_validation = None, None
     if process.main:
