@@ -379,8 +379,30 @@ def _request(fixed: str, moving: str, fixed_mask: str | None, moving_mask: str |
     change its result. A batch rerun reuses an earlier result only if this matches."""
     resolved = {key: None if value is None else os.path.realpath(value) for key, value in
                 (("fixed", fixed), ("moving", moving), ("fixed_mask", fixed_mask), ("moving_mask", moving_mask))}
-    return {**resolved, "mode": args.mode, "bandwidth": args.bandwidth, "model": args.model, "refine": args.refine,
-            "fixed_modality": args.fixed_modality, "moving_modality": args.moving_modality}
+    return {**resolved, "mode": args.mode, "bandwidth": args.bandwidth, "model": _model_identity(args.model),
+            "refine": args.refine, "fixed_modality": args.fixed_modality, "moving_modality": args.moving_modality}
+
+
+def _model_identity(model: str) -> str | dict[str, str]:
+    """A model as a request names it: ``none`` for the learning-free solver, else its files' real paths and SHA-256
+    (a model trained again into the same folder, or a relative path from another folder, was taken for the earlier
+    one). Files that cannot be read leave their path alone: the registration then says what is wrong."""
+    import hashlib
+
+    from dpcn_med.models.weights import model_paths
+    from dpcn_med.register import LEARNING_FREE
+
+    if model.lower() in LEARNING_FREE:
+        return "none"
+    identity = {}
+    for kind, path in zip(("weights", "config"), model_paths(model)):
+        identity[kind] = os.path.realpath(path)
+        try:
+            with open(path, "rb") as file:
+                identity[f"{kind}_sha256"] = hashlib.file_digest(file, "sha256").hexdigest()
+        except OSError:
+            pass
+    return identity
 
 
 def _earlier_report(folder: Path, request: dict, outputs: Sequence[str]) -> tuple[dict | None, bool]:

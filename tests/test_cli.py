@@ -569,6 +569,24 @@ class TestBatch:
             assert "summary.csv: is this run's pairs file" in capsys.readouterr().err
         assert table.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["cohort"]
 
+    def test_a_model_is_known_by_its_contents_not_by_the_path_given(self, tmp_path, monkeypatch):
+        """A model trained again into the same folder had the earlier model's results reused ('done earlier')."""
+        from dpcn_med.cli import _model_identity
+        from dpcn_med.models import DPCN, ModelConfig, save_model
+
+        config = ModelConfig(bandwidth=8, channels=(4, 8, 16), residual_units=0)
+        (tmp_path / "run").mkdir()
+        torch.manual_seed(0)
+        save_model(DPCN(config), tmp_path / "run" / "model")
+        first = _model_identity(str(tmp_path / "run" / "model"))
+        monkeypatch.chdir(tmp_path / "run")
+        assert _model_identity("model.safetensors") == first  # the same files by another path
+        torch.manual_seed(1)
+        save_model(DPCN(config), tmp_path / "run" / "model")
+        again = _model_identity("model")
+        assert again["weights"] == first["weights"] and again["weights_sha256"] != first["weights_sha256"]
+        assert _model_identity("None") == _model_identity("learning-free") == "none"
+
     def test_a_tilde_is_the_home_folder_and_other_paths_are_from_the_pairs_folder(self, tmp_path, monkeypatch):
         from dpcn_med.cli import _read_pairs
 
