@@ -45,8 +45,7 @@ def measure(device: torch.device, bandwidth: int, batches: list[int], steps: int
 
         def step(batch: int = batch) -> None:
             fixed, moving, target = synthetic_pairs(base.expand(batch, -1, -1, -1, -1), generator, PairConfig())
-            with torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp):
-                output = model(fixed, moving, target)
+            output = model(fixed, moving, target, generator=generator, amp=amp)
             loss = pose_loss(output, target)["total"]
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
@@ -98,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
                      f"{r['learning_free'] * 1e3:.1f} |")
     text = (f"# Learned model speed\n\n{generated_by(__file__, argv)}, torch {torch.__version__}; UNet channels "
             f"{list(CHANNELS)}, "
-            f"{'bfloat16 autocast for the networks' if amp else 'float32'}; synthetic random-contrast pairs of the "
+            f"training {'with bfloat16 autocast for the feature extractors' if amp else 'in float32'}, inference in "
+            f"float32 (as register runs); synthetic random-contrast pairs of the "
             f"MNI152 T1; training medians over {args.steps} steps, inference over {args.repeats} calls.\n\n"
             + "\n".join(lines) + "\n")
     return publish(text, args.output)

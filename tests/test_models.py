@@ -159,6 +159,78 @@ class TestDPCN:
         with pytest.raises(InputError, match="this model takes \\(B, 1, 16, 16, 16\\) pairs"):
             DPCN(TINY)(torch.rand(1, 1, 32, 32, 32), torch.rand(1, 1, 32, 32, 32))
 
+    # Before: the training loop's autocast covered the solver too, which returned bfloat16 rotations and
+    # log-probabilities, off by degrees.
+    def test_the_caller_s_autocast_leaves_the_solver_in_float32(self):
+        fixed, moving, target = pairs(16, 2, seed=7)
+        model = DPCN(TINY).train()
+        reference = model(fixed, moving, target, generator=torch.Generator().manual_seed(0))
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            output = model(fixed, moving, target, generator=torch.Generator().manual_seed(0))
+        assert output.rotation.dtype == output.stage.rotation_log_prob.dtype == torch.float32
+        for name in ("rotation", "scale", "translation", "confidence"):
+            torch.testing.assert_close(getattr(output, name), getattr(reference, name))
+        torch.testing.assert_close(output.stage.rotation_log_prob, reference.stage.rotation_log_prob)
+
+    def test_amp_runs_only_the_extractors_in_bfloat16(self):
+        """An untrained model's features are its inputs (gains 0), so the pose is the float32 one exactly."""
+        fixed, moving, target = pairs(16, 2, seed=7)
+        model = DPCN(TINY).train()
+        unet_dtypes = []
+        model.rotation_fixed.unet.register_forward_hook(lambda module, args, output: unet_dtypes.append(output.dtype))
+        reference = model(fixed, moving, target, generator=torch.Generator().manual_seed(0))
+        output = model(fixed, moving, target, generator=torch.Generator().manual_seed(0), amp=True)
+        assert unet_dtypes == [torch.float32, torch.bfloat16]
+        assert output.rotation.dtype == output.stage.rotation_log_prob.dtype == torch.float32
+        for name in ("rotation", "scale", "translation", "confidence"):
+            torch.testing.assert_close(getattr(output, name), getattr(reference, name))
+        torch.testing.assert_close(output.stage.rotation_log_prob, reference.stage.rotation_log_prob)
+        pose_loss(output, target)["total"].backward()
+        assert model.rotation_fixed.gain.grad.dtype == torch.float32 and model.rotation_fixed.gain.grad != 0
+
+    # Before: these failed inside MONAI or the solver with raw RuntimeErrors, or (float64) as a dtype mismatch.
+    @pytest.mark.parametrize(("shape", "dtype", "message"), [
+        ((1, 2, 16, 16, 16), torch.float32, r"grids \(1, 2, 16, 16, 16\) and \(1, 2, 16, 16, 16\): this model takes"),
+        ((1, 16, 16, 16), torch.float32, r"grids \(1, 16, 16, 16\) and \(1, 16, 16, 16\): this model takes \(B, 1, "),
+        ((16, 16, 16), torch.float32, r"grids \(16, 16, 16\) and \(16, 16, 16\): this model takes"),
+        ((1, 1, 16, 16, 16), torch.int32, r"fixed is int32; this model takes .* floating-point grids"),
+        ((1, 1, 16, 16, 16), torch.bool, r"fixed is bool; this model takes .* floating-point grids"),
+        ((1, 1, 16, 16, 16), torch.complex64, r"fixed is complex64; this model takes .* floating-point grids")])
+    def test_grids_that_are_not_batched_single_channel_floats_refused(self, shape, dtype, message):
+        volume = torch.ones(shape, dtype=dtype)
+        with pytest.raises(InputError, match=message):
+            DPCN(TINY).eval()(volume, volume)
+
+    def test_other_float_dtypes_are_cast_to_the_parameters(self):
+        fixed, moving, _ = pairs(16, 1, seed=3)
+        model = DPCN(TINY).eval()
+        with torch.no_grad():
+            reference = model(fixed, moving)
+            for dtype in (torch.float64, torch.float16):
+                output = model(fixed.to(dtype), moving.to(dtype))
+                assert output.rotation.dtype == output.translation.dtype == torch.float32
+                if dtype == torch.float64:  # numpy's float64 holds the float32 grids exactly
+                    torch.testing.assert_close(output.rotation, reference.rotation)
+                    torch.testing.assert_close(output.translation, reference.translation)
+
+    def test_a_grid_that_is_not_a_tensor_refused(self):
+        fixed, _, _ = pairs(16, 1, seed=3)
+        with pytest.raises(InputError, match=r"moving is .*\(ndarray\); this model takes \(B, 1, 16, 16, 16\) pairs"):
+            DPCN(TINY).eval()(fixed, fixed.numpy())
+
+    # The training loop passes its generator (one per rank, advanced by the step), not the global RNG.
+    def test_compensation_noise_follows_the_generator(self):
+        fixed, moving, target = pairs(16, 2, seed=4)
+        model = DPCN(TINY).train()
+
+        def compensation(seed: int) -> torch.Tensor:
+            torch.manual_seed(0)  # the global RNG fixed: only the generator may change the noise
+            return model(fixed, moving, target, generator=torch.Generator().manual_seed(seed)).compensation
+
+        first, again, other = compensation(1), compensation(1), compensation(2)
+        torch.testing.assert_close(again, first, rtol=0, atol=0)
+        assert not torch.allclose(other, first)
+
     def test_a_few_steps_lower_the_loss(self):
         """A tiny model on a fixed batch of heterogeneous pairs (the moving image's contrast inverted): AdamW
         lowers the pose loss within a few steps."""
@@ -192,6 +264,17 @@ class TestWeights:
         fixed, moving, _ = pairs(16, 1, seed=6)
         with torch.no_grad():
             torch.testing.assert_close(loaded(fixed, moving).translation, model.eval()(fixed, moving).translation)
+
+    # Before: "auto" failed in torch and "cuda" without a GPU in an assertion, after the files were read.
+    def test_devices_as_register_reads_them(self, tmp_path):
+        save_model(DPCN(TINY), tmp_path / "model")
+        expected = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        assert {p.device.type for p in load_model(tmp_path / "model", device="auto").parameters()} == {expected.type}
+        if not torch.cuda.is_available():
+            with pytest.raises(InputError, match="device 'cuda' asked for, but this torch build sees no CUDA GPU"):
+                load_model(tmp_path / "model", device="cuda")
+        with pytest.raises(InputError, match="device 'tpu' is not valid"):  # refused before the (absent) files
+            load_model(tmp_path / "absent", device="tpu")
 
     def test_shared_extractors_are_stored_once(self, tmp_path):
         from safetensors import safe_open

@@ -284,6 +284,7 @@ class TestTrain:
     def test_tiny_run_writes_everything_and_resumes(self, tmp_path):
         config = tiny_config(tmp_path)
         model, record = train(config)
+        assert not model.training  # ready to register, as load_model's
         output = Path(config.output)
         for name in ("model.safetensors", "model.json", "checkpoint.safetensors", "checkpoint.json", "log.csv",
                      "training.png"):
@@ -305,6 +306,21 @@ class TestTrain:
         rows = log_rows(output)
         assert [int(r["step"]) for r in rows if r["kind"] == "train"] == [1, 2, 3, 4, 5, 6]
         assert json.loads((output / "checkpoint.json").read_text())["step"] == 6
+
+    # Before: the model drew its compensation noise from the global RNG, the same on every DDP rank.
+    def test_the_model_draws_from_the_loop_s_generator(self, tmp_path, monkeypatch):
+        from dpcn_med.models import DPCN
+
+        forward, generators = DPCN.forward, []
+
+        def recorded(model, *args, **options):
+            if model.training:
+                generators.append(options.get("generator"))
+            return forward(model, *args, **options)
+
+        monkeypatch.setattr(DPCN, "forward", recorded)
+        train(tiny_config(tmp_path))
+        assert len(generators) == 4 and all(isinstance(g, torch.Generator) for g in generators)
 
     def test_a_step_with_non_finite_gradients_is_skipped(self, tmp_path, monkeypatch):
         """A NaN gradient (a degenerate pair) made every weight NaN; the step is skipped and counted."""

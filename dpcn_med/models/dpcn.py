@@ -199,60 +199,88 @@ class DPCN(nn.Module):
 
     def forward(self, fixed: Tensor, moving: Tensor, target: PoseTarget | None = None,
                 generator: torch.Generator | None = None, mode: str | None = None,
-                alternatives: int = 0) -> DPCNOutput:
+                alternatives: int = 0, amp: bool = False) -> DPCNOutput:
         """Register ``moving`` onto ``fixed``.
 
         Args:
-            fixed, moving: ``(B, 1, 2B, 2B, 2B)`` canonical grids, normalised intensities.
+            fixed, moving: ``(B, 1, 2B, 2B, 2B)`` canonical grids, normalised intensities, floating point (cast to
+                the parameters' dtype: numpy's float64 becomes float32).
             target: the true pose; in training mode it (plus noise) compensates the translation stage's input.
-            generator: for the compensation noise (reproducible training).
+            generator: for the compensation noise (reproducible training); drawn on its device.
             mode: ``rigid`` or ``similarity``; defaults to the mode the model was trained in.
             alternatives: runner-up candidates for ``stage.alternatives`` (the solver's option; their translations
                 come from the rotation-stage features).
+            amp: run the feature extractors under bfloat16 autocast (training's mixed precision).
 
         Returns:
             A :class:`DPCNOutput`. In training mode every estimate is a soft arg-max (differentiable); in eval mode
             the solver's arg-max with sub-grid refinement.
+
+        Convention:
+            Only the extractors may run in reduced precision: their features are cast back to the parameters' dtype
+            and the solver runs with autocast off, the caller's included (in bfloat16 its rotated direction grids
+            and SO(3) sums are off by degrees).
+
+        Raises:
+            InputError: grids that are not tensors, not floating point, or not ``(B, 1, 2B, 2B, 2B)`` pairs.
         """
-        size = 2 * self.config.bandwidth
-        if fixed.shape[-3:] != (size,) * 3 or moving.shape != fixed.shape:
-            raise InputError(f"grids {tuple(fixed.shape)} and {tuple(moving.shape)}: this model takes "
-                             f"(B, 1, {size}, {size}, {size}) pairs (bandwidth {self.config.bandwidth})")
-        temperatures = self.temperatures()
-        refine = not self.training
+        fixed, moving = self._grids(fixed, moving)
         mode = check_mode(mode or self.config.mode)
-        stage = solve(self._features("rotation_fixed", fixed), self._features("rotation_moving", moving), mode,
-                      config=self.solver, temperatures=temperatures, refine=refine, alternatives=alternatives)
-        if self.training and target is not None:
-            compensation = self._noisy(target, generator, rigid=mode == "rigid").to(fixed.dtype)
-        else:
-            compensation = (stage.scale[:, None, None] * stage.rotation).detach()
-        estimate = self.translation_peak(fixed, warp(moving, compensation), temperatures.translation)
-        translation = (compensation @ estimate.shift[..., None])[..., 0]
+        with torch.autocast(fixed.device.type, enabled=False):
+            temperatures = self.temperatures()
+            stage = solve(self._features("rotation_fixed", fixed, amp), self._features("rotation_moving", moving, amp),
+                          mode, config=self.solver, temperatures=temperatures, refine=not self.training,
+                          alternatives=alternatives)
+            if self.training and target is not None:
+                compensation = self._noisy(target, generator, rigid=mode == "rigid").to(fixed.dtype)
+            else:
+                compensation = (stage.scale[:, None, None] * stage.rotation).detach()
+            estimate = self.translation_peak(fixed, warp(moving, compensation), temperatures.translation, amp=amp)
+            translation = (compensation @ estimate.shift[..., None])[..., 0]
         return DPCNOutput(rotation=stage.rotation, scale=stage.scale, translation=translation,
                           confidence=estimate.peak.mass, stage=stage, translation_estimate=estimate,
                           compensation=compensation)
 
-    def translation_peak(self, fixed: Tensor, moving: Tensor, temperature: Tensor | None = None
+    def translation_peak(self, fixed: Tensor, moving: Tensor, temperature: Tensor | None = None, amp: bool = False
                          ) -> TranslationEstimate:
         """The translation stage: phase correlation of the translation features of ``fixed`` and ``moving``
         ``(B, 1, 2B, 2B, 2B)``, ``moving`` already compensated for rotation and scale (or as stored). The
         arg-max is refined in eval mode, a soft arg-max in training mode; ``temperature`` defaults to the learned
-        one."""
-        temperature = self.temperatures().translation if temperature is None else temperature
-        return phase_translation(self._features("translation_fixed", fixed)[:, 0],
-                                 self._features("translation_moving", moving)[:, 0], temperature, dim=3,
-                                 taper=self.solver.taper, refine=not self.training, upsample=self.solver.upsample)
+        one; ``amp`` and the grids' dtypes as in :meth:`forward`."""
+        fixed, moving = self._grids(fixed, moving)
+        with torch.autocast(fixed.device.type, enabled=False):
+            temperature = self.temperatures().translation if temperature is None else temperature
+            return phase_translation(self._features("translation_fixed", fixed, amp)[:, 0],
+                                     self._features("translation_moving", moving, amp)[:, 0], temperature, dim=3,
+                                     taper=self.solver.taper, refine=not self.training, upsample=self.solver.upsample)
 
-    def _features(self, extractor: str, volume: Tensor) -> Tensor:
-        """``(B, 1, N, N, N)`` features of ``volume`` by the extractor named ``extractor``.
+    def _grids(self, fixed: Tensor, moving: Tensor) -> tuple[Tensor, Tensor]:
+        """``fixed`` and ``moving`` checked as ``(B, 1, 2B, 2B, 2B)`` pairs, in the parameters' dtype."""
+        size = 2 * self.config.bandwidth
+        expected = f"this model takes (B, 1, {size}, {size}, {size}) pairs (bandwidth {self.config.bandwidth})"
+        for name, volume in (("fixed", fixed), ("moving", moving)):
+            if not isinstance(volume, Tensor):
+                raise InputError(f"{name} is {shown(volume)}; {expected} of floating-point tensors")
+            if not volume.is_floating_point():
+                raise InputError(f"{name} is {str(volume.dtype).removeprefix('torch.')}; {expected} of "
+                                 "floating-point grids (e.g. volume.float())")
+        if fixed.ndim != 5 or fixed.shape[1:] != (1, size, size, size) or moving.shape != fixed.shape:
+            raise InputError(f"grids {tuple(fixed.shape)} and {tuple(moving.shape)}: {expected}")
+        dtype = next(self.parameters()).dtype
+        return fixed.to(dtype), moving.to(dtype)
+
+    def _features(self, extractor: str, volume: Tensor, amp: bool = False) -> Tensor:
+        """``(B, 1, N, N, N)`` features of ``volume`` by the extractor named ``extractor``, in ``volume``'s dtype
+        (computed under bfloat16 autocast when ``amp``).
 
         Raises:
             InputError: in eval mode, features holding NaN or Inf (finite weights can overflow float32, e.g. a gain of
                 3e38); the solver would otherwise return a NaN pose, or blame the image. Training skips the check,
                 which would synchronise a GPU on every step.
         """
-        features = getattr(self, extractor)(volume)
+        with torch.autocast(volume.device.type, dtype=torch.bfloat16, enabled=amp):
+            features = getattr(self, extractor)(volume)
+        features = features.to(volume.dtype)
         if not self.training and not torch.isfinite(features).all():
             raise InputError(f"the {extractor} features hold NaN or Inf values (the weights overflow float32 on "
                              "this input); the model is unusable")
@@ -261,7 +289,10 @@ class DPCN(nn.Module):
     def _noisy(self, target: PoseTarget, generator: torch.Generator | None, rigid: bool) -> Tensor:
         """``(B, 3, 3)``: the true ``scale * rotation``, turned and scaled a little at random."""
         batch = target.rotation.shape[0]
-        options = {"generator": generator, "dtype": torch.float64}
+        # Drawn on the generator's device (the training loop's is on the data's, and a CUDA generator cannot draw on
+        # the CPU), then moved.
+        options = {"generator": generator, "device": "cpu" if generator is None else generator.device,
+                   "dtype": torch.float64}
         axis = torch.randn(batch, 3, **options)
         angle = torch.randn(batch, 1, **options) * math.radians(self.config.compensation_noise_degrees)
         turn = axis_angle_to_matrix(axis / axis.norm(dim=-1, keepdim=True) * angle).to(target.rotation.device)

@@ -18,6 +18,7 @@ from dpcn_med import io
 from dpcn_med.arguments import shown
 from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.models.dpcn import DPCN, ModelConfig
+from dpcn_med.register import resolve_device
 
 FORMAT = "dpcn_med.model/1"
 """The JSON's ``format`` key and the weights' ``format`` metadata: what wrote them and how."""
@@ -75,16 +76,18 @@ def save_model(model: DPCN, path: str | os.PathLike, *, record: dict | None = No
 
 
 def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -> DPCN:
-    """A model saved by :func:`save_model`, in eval mode on ``device``.
+    """A model saved by :func:`save_model`, in eval mode on ``device`` (``auto``, ``cpu``, ``cuda`` or ``cuda:N``, as
+    :func:`dpcn_med.register.resolve_device` reads it).
 
     Raises:
         InputNotFoundError: either file is missing.
-        InputError: not a model path (:func:`model_paths`) or one the file system refuses (a name too long), a
-            pickled checkpoint, a config from something else, lacking a key that defines the model or with unusable
-            values, weights of another format or saved with another config, weights that do not fit the config,
-            integer weights where floats belong, weights holding NaN or Inf (as stored or as float32), or learned
-            temperatures that are not finite and positive.
+        InputError: an unusable ``device`` (refused before the files are read), not a model path (:func:`model_paths`)
+            or one the file system refuses (a name too long), a pickled checkpoint, a config from something else,
+            lacking a key that defines the model or with unusable values, weights of another format or saved with
+            another config, weights that do not fit the config, integer weights where floats belong, weights holding
+            NaN or Inf (as stored or as float32), or learned temperatures that are not finite and positive.
     """
+    device = resolve_device(device)
     weights, config = model_paths(path)
     if os.fspath(path).lower().endswith(io.PICKLE_SUFFIXES):
         io.read_tensors(path)  # raises its message about pickles

@@ -79,7 +79,8 @@ class OptimiserConfig:
         batch_size: pairs per step and device.
         learning_rate, weight_decay, warmup_steps, final_fraction: the schedule.
         gradient_clip: largest gradient norm (0: no clipping).
-        amp: bfloat16 autocast of the networks on CUDA (the solver's FFTs stay in float32).
+        amp: bfloat16 autocast of the feature extractors on CUDA (their features are cast back to float32 and
+            the solver runs in float32: :meth:`dpcn_med.models.DPCN.forward`).
 
     Raises:
         InputError: a value out of its range (the message names it).

@@ -300,7 +300,8 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
     """Train a model as ``config`` says (resuming from its checkpoint if there is one).
 
     Returns:
-        ``(model, record)``: the trained (unwrapped) model on its device and the training record saved with it.
+        ``(model, record)``: the trained (unwrapped) model on its device, in eval mode, and the training record
+        saved with it.
     """
     output = Path(config.output)
     _check_output_outside_data(output, config)
@@ -354,8 +355,7 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
             fixed, moving, target = _to(collate_pairs([real[int(i)] for i in index]), process.device)
         else:
             fixed, moving, target = sample_pairs(bank, config.optimiser.batch_size, generator, config.data.pair)
-        with torch.autocast(device_type=process.device.type, dtype=torch.bfloat16, enabled=amp):
-            result = network(fixed, moving, target)
+        result = network(fixed, moving, target, generator=generator, amp=amp)
         terms = pose_loss(result, target)
         optimiser.zero_grad(set_to_none=True)
         terms["total"].backward()
@@ -414,4 +414,4 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
         io.write_csv(rows, output / "log.csv", COLUMNS)
         plot(rows, output / "training.png")
     distributed.stop(process)
-    return model, record
+    return model.eval(), record
