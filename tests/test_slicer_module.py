@@ -41,6 +41,7 @@ from DPCNRegistrationLib.transforms import (  # noqa: E402
     base_transform_node,
     place_result,
     read_transform_file,
+    reusable_output,
 )
 from DPCNRegistrationLib.volumes import (  # noqa: E402
     RAS_FROM_LPS,
@@ -89,6 +90,34 @@ def oblique_image(dtype=sitk.sitkInt16) -> sitk.Image:
 
 def homogeneous(points: np.ndarray) -> np.ndarray:
     return np.hstack([points, np.ones((len(points), 1))]).T
+
+
+def launcher_of_a_sleeping_python(folder: Path) -> tuple[str, Path]:
+    """A stand-in for PythonSlicer, a launcher that runs Python as its child (not by exec): ``(its path, the file
+    that child writes its process ID to once it runs)``. The child prints a line, then sleeps for a minute."""
+    pid_file = folder / "python.pid"
+    launcher = folder / "launcher"
+    launcher.write_text(f'#!/bin/sh\n"{sys.executable}" -c "import os, time; '
+                        f"open('{pid_file}', 'w').write(str(os.getpid())); print('started', flush=True); "
+                        f'time.sleep(60)"\n')
+    launcher.chmod(0o755)
+    return str(launcher), pid_file
+
+
+def ended(pid: int, within: float = 2.0) -> bool:
+    """Whether process ``pid`` ends within ``within`` seconds (as a zombie that no one has reaped yet, too): a process
+    closes its files, the output pipe included, a moment before it has ended."""
+    status = Path(f"/proc/{pid}/status")
+    started = time.perf_counter()
+    while time.perf_counter() - started < within:
+        try:
+            os.kill(pid, 0)
+            if status.is_file() and re.search(r"^State:\s*Z", status.read_text(), re.MULTILINE):
+                return True
+        except (ProcessLookupError, FileNotFoundError):
+            return True
+        time.sleep(0.01)
+    return False
 
 
 class TestVolumes:
@@ -279,6 +308,25 @@ class TestTransforms:
         # Registering again into the same output measures from the base again, not from the previous result.
         assert base_transform_node(moving, output).GetID() == base.GetID()
 
+    def test_an_output_holding_other_nodes_is_not_reused(self):
+        scene = slicer.vtkMRMLScene()
+        moving, other, mask = (scene.AddNewNodeByClass(c) for c in (
+            "vtkMRMLScalarVolumeNode", "vtkMRMLScalarVolumeNode", "vtkMRMLLabelMapVolumeNode"))
+        mine = linear_transform(scene, np.eye(4), "my transform")
+        assert reusable_output(None, moving) is None
+        assert reusable_output(mine, moving) is mine
+        for node in (moving, mask):
+            node.SetAndObserveTransformNodeID(mine.GetID())
+        assert reusable_output(mine, moving, mask) is mine  # the moving volume and its mask follow the result
+        other.SetAndObserveTransformNodeID(mine.GetID())
+        assert reusable_output(mine, moving, mask) is None  # writing it would move another volume
+        result = linear_transform(scene, np.eye(4), "an earlier result")
+        result.SetAttribute(ROLE_ATTRIBUTES[1], other.GetID())
+        assert reusable_output(result, moving) is None  # another volume's registration
+        result.SetAttribute(ROLE_ATTRIBUTES[1], moving.GetID())
+        other.SetAndObserveTransformNodeID(result.GetID())  # put there to follow the moving volume
+        assert reusable_output(result, moving) is result
+
 
 class TestProcess:
     def test_options_become_dpcn_med_arguments(self):
@@ -339,6 +387,23 @@ class TestProcess:
         assert job.finished and job.returncode != 0 and job.cancelled
         assert time.perf_counter() - started < 30
 
+    @pytest.mark.skipif(os.name != "posix", reason="the stand-in launcher is a shell script")
+    def test_cancel_stops_what_a_launcher_started_without_blocking(self, tmp_path):
+        """PythonSlicer is a launcher that runs Python as its child: terminating the launcher alone left that child
+        registering, and cancel blocked (the GUI thread) for seconds."""
+        launcher, pid_file = launcher_of_a_sleeping_python(tmp_path)
+        job = Job([launcher])
+        started = time.perf_counter()
+        while not any(e.kind == "log" for e in job.poll()):
+            time.sleep(0.01)
+            assert time.perf_counter() - started < 30
+        python = int(pid_file.read_text())
+        started = time.perf_counter()
+        job.cancel()
+        assert time.perf_counter() - started < 0.5
+        job.wait(5)  # the output pipe closes only when every process holding it has ended
+        assert job.finished and job.cancelled and ended(python)
+
     def test_script_says_when_dpcn_med_is_missing(self):
         # -S: no site-packages, so dpcn_med is not importable, as in a Slicer where it is not installed yet.
         done = subprocess.run([sys.executable, "-S", str(process.SCRIPT), "register"], capture_output=True,
@@ -348,6 +413,13 @@ class TestProcess:
 
 
 class TestDependencies:
+    def test_what_still_does_not_import_after_installing_is_named(self, monkeypatch):
+        dependencies.check_installed()
+        monkeypatch.setattr(dependencies, "missing", lambda: ["torch", "dpcn_med"])
+        with pytest.raises(RuntimeError, match="torch and dpcn_med still cannot be imported after installing; "
+                                               "restart Slicer"):
+            dependencies.check_installed()
+
     def test_nothing_missing_here(self):
         assert dependencies.missing() == []
 
@@ -561,6 +633,7 @@ class TestRegistrationFailures:
         with pytest.raises(ValueError, match="empty: the moving volume holds no scalar image data"):
             Registration(fixed, empty)
         output = linear_transform(scene, np.eye(4), "result")
+        output.SetAttribute(ROLE_ATTRIBUTES[1], moving.GetID())  # the moving volume's: reused, unlike other nodes'
         fixed.SetAndObserveTransformNodeID(output.GetID())
         with pytest.raises(ValueError, match="result: the fixed volume depends on this output transform"):
             Registration(fixed, moving, output_transform=output)
@@ -593,6 +666,56 @@ class TestRegistrationFailures:
                                                     "registered"):
             registration.finish()
         assert scene.GetNumberOfNodes() == nodes - 1 and not registration.folder.exists()
+
+    @pytest.mark.parametrize(("edit", "message"), [
+        (lambda scene, base, fixed_parent: scene.RemoveNode(base),
+         "user's transform: was removed from the scene while it was being registered"),
+        (lambda scene, base, fixed_parent: base.SetMatrixTransformToParent(array_to_matrix(np.eye(4))),
+         "moving: its parent transforms changed while it was being registered; the scene is left as it is: apply "
+         "again"),
+        (lambda scene, base, fixed_parent: fixed_parent.SetMatrixTransformToParent(
+            array_to_matrix(rotation_ras(5, (0, 0, 1), (0, 0, 0)))),
+         "fixed: its parent transforms changed while it was being registered"),
+        (lambda scene, base, fixed_parent: scene.GetFirstNodeByName("moving").SetAndObserveTransformNodeID(
+            fixed_parent.GetID()), "moving: its parent transforms changed"),
+    ], ids=["base-removed", "base-edited", "fixed-parent-edited", "moving-reparented"])
+    def test_a_frame_changed_while_it_runs_changes_nothing(self, pair, tmp_path, complete_result, edit, message):
+        """The result is a matrix in the frame the volumes were registered in; placed after that frame changed, it
+        hung under a removed node or put the moving volume off the fixed one."""
+        scene, fixed, moving = pair
+        base = linear_transform(scene, rotation_ras(20, (1, 0, 0), (5, -3, 8)), "user's transform")
+        moving.SetAndObserveTransformNodeID(base.GetID())
+        fixed_parent = linear_transform(scene, rotation_ras(-10, (0, 1, 0), (1, 2, 3)), "fixed's transform")
+        fixed.SetAndObserveTransformNodeID(fixed_parent.GetID())
+        registration = Registration(fixed, moving, QUICK, python=self.child_writing(complete_result, tmp_path),
+                                    workspace=str(tmp_path))
+        edit(scene, base, fixed_parent)
+        parent, nodes = moving.GetParentTransformNode(), scene.GetNumberOfNodes()
+        with pytest.raises(RegistrationError, match=message):
+            registration.finish()
+        assert scene.GetNumberOfNodes() == nodes and moving.GetParentTransformNode() is parent
+        assert not registration.folder.exists()
+
+    def test_an_output_holding_another_volume_is_left_alone(self, pair, tmp_path, complete_result):
+        """After a first Apply the widget offered its transform as the output of the next; registering another
+        moving volume into it moved the first one off its registration."""
+        scene, fixed, moving = pair
+        moving.SetName("CTBrain")
+        other = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "MRBrainT2")
+        image_to_volume(turned_oblique_image(PAIR_ANGLES["moving"]), other)
+        python = self.child_writing(complete_result, tmp_path)
+        first = register_volumes(fixed, moving, QUICK, python=python, workspace=str(tmp_path)).transform
+        placed = transform_to_world(first)
+        second = register_volumes(fixed, other, QUICK, output_transform=first, python=python,
+                                  workspace=str(tmp_path)).transform
+        assert second.GetID() != first.GetID() and second.GetName() == "MRBrainT2 to fixed"
+        assert other.GetParentTransformNode().GetID() == second.GetID()
+        assert moving.GetParentTransformNode().GetID() == first.GetID()
+        assert first.GetAttribute(ROLE_ATTRIBUTES[1]) == moving.GetID()
+        np.testing.assert_array_equal(transform_to_world(first), placed)
+        # Registered again, the first volume reuses its own transform.
+        again = register_volumes(fixed, moving, QUICK, output_transform=first, python=python, workspace=str(tmp_path))
+        assert again.transform.GetID() == first.GetID()
 
     def test_a_moving_mask_covers_the_same_voxels_when_registered_again(self, pair, tmp_path, complete_result):
         """The second Apply registers the moving volume without the first result; its mask was placed with it, and
@@ -630,11 +753,42 @@ class TestRegistrationFailures:
     def test_cancel_stops_the_registration_and_cleans_up(self, pair, tmp_path):
         scene, fixed, moving = pair
         registration = Registration(fixed, moving, QUICK, workspace=str(tmp_path))
+        started = time.perf_counter()
         registration.cancel()
-        assert registration.job.cancelled and registration.finished
-        assert not registration.folder.exists() and moving.GetParentTransformNode() is None
+        assert time.perf_counter() - started < 0.5  # the widget calls it on the GUI thread
         with pytest.raises(RegistrationError, match="cancelled"):
             registration.finish()
+        assert registration.job.cancelled and registration.finished
+        assert not registration.folder.exists() and moving.GetParentTransformNode() is None
+
+    @pytest.mark.skipif(os.name != "posix", reason="the stand-in launcher is a shell script")
+    def test_cancel_returns_at_once_and_stops_the_launchers_python(self, pair, tmp_path):
+        """Cancel waited up to 15 s on the GUI thread for a launcher's Python it never stopped."""
+        scene, fixed, moving = pair
+        launcher, pid_file = launcher_of_a_sleeping_python(tmp_path)
+        registration = Registration(fixed, moving, QUICK, python=launcher, workspace=str(tmp_path))
+        started = time.perf_counter()
+        while not pid_file.is_file() or not pid_file.read_text():
+            time.sleep(0.01)
+            assert time.perf_counter() - started < 30
+        started = time.perf_counter()
+        registration.cancel()
+        assert time.perf_counter() - started < 0.5
+        with pytest.raises(RegistrationError, match="cancelled"):
+            registration.finish()
+        assert time.perf_counter() - started < 5 and ended(int(pid_file.read_text()))
+        assert not registration.folder.exists()
+
+    def test_cancelled_files_go_without_finish(self, pair, tmp_path):
+        """The widget drops a cancelled registration without finishing it; its files go once the process ends."""
+        scene, fixed, moving = pair
+        registration = Registration(fixed, moving, QUICK, workspace=str(tmp_path))
+        registration.cancel()
+        registration.job.wait(30)
+        started = time.perf_counter()
+        while registration.folder.exists() and time.perf_counter() - started < 10:
+            time.sleep(0.05)
+        assert not registration.folder.exists()
 
 
 class TestModuleFiles:

@@ -18,6 +18,7 @@ import vtk
 from DPCNRegistrationLib import dependencies
 from DPCNRegistrationLib.logic import Registration, RegistrationError, Result, register_volumes
 from DPCNRegistrationLib.process import Options
+from DPCNRegistrationLib.transforms import reusable_output
 from slicer import vtkMRMLLabelMapVolumeNode, vtkMRMLLinearTransformNode, vtkMRMLScalarVolumeNode
 from slicer.parameterNodeWrapper import Choice, parameterNodeWrapper
 from slicer.ScriptedLoadableModule import (
@@ -87,6 +88,7 @@ class DPCNRegistrationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
         self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
+        self.ui.movingVolumeSelector.connect("currentNodeChanged(vtkMRMLNode*)", self.onMovingVolumeChanged)
         self.layout.addStretch(1)
         self.initializeParameterNode()
 
@@ -136,6 +138,14 @@ class DPCNRegistrationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                                        "Register the moving volume onto the fixed one" if ready else
                                        "Choose two different volumes")
         self.ui.modelFilePathLineEdit.enabled = bool(node and node.model == "file")
+
+    def onMovingVolumeChanged(self, moving) -> None:
+        """Clear an output transform that holds another volume's registration (or other nodes): the logic would leave
+        it alone and make a new one, and the selector should say so."""
+        node = self._parameterNode
+        if node and node.outputTransform and moving and reusable_output(node.outputTransform, moving,
+                                                                          node.movingMask) is None:
+            node.outputTransform = None
 
     def onApplyButton(self) -> None:
         if self._registration is not None:
@@ -240,6 +250,9 @@ class DPCNRegistrationLogic(ScriptedLoadableModuleLogic):
 
         Returns:
             ``False`` when the user declined, ``True`` when everything is there.
+
+        Raises:
+            RuntimeError: an installation failed, or what was installed does not import yet (restart Slicer).
         """
         needed = dependencies.missing()
         if not needed:
@@ -259,7 +272,8 @@ class DPCNRegistrationLogic(ScriptedLoadableModuleLogic):
             PyTorchUtils.PyTorchUtilsLogic().installTorch(askConfirmation=False)  # raises when it fails
         if "dpcn_med" in needed:
             self._installPackage(source)
-        return not dependencies.missing()
+        dependencies.check_installed()
+        return True
 
     @staticmethod
     def _installPackage(source: str) -> None:
@@ -294,7 +308,7 @@ class DPCNRegistrationLogic(ScriptedLoadableModuleLogic):
             outputTransform=None, outputVolume=None, progress=None) -> Result:
         """Register ``moving`` onto ``fixed`` and wait; dependencies are installed first (with confirmation)."""
         if not self.installDependencies(askConfirmation=True):
-            raise RuntimeError("DPCN Registration's dependencies are not installed")
+            raise RuntimeError("DPCN Registration's dependencies are not installed: installing them was declined")
         return register_volumes(fixed, moving, options, fixed_mask=fixedMask, moving_mask=movingMask,
                                 output_transform=outputTransform, output_volume=outputVolume, progress=progress,
                                 workspace=slicer.app.temporaryPath)

@@ -24,6 +24,15 @@ def missing() -> list[str]:
     return [name for name in ("torch", PACKAGE) if importlib.util.find_spec(name) is None]
 
 
+def check_installed() -> None:
+    """Raise ``RuntimeError`` naming what still does not import after installing it: a failed installation that
+    reported none, or one that Slicer's Python sees only after a restart."""
+    still = missing()
+    if still:
+        raise RuntimeError(f"{' and '.join(still)} still cannot be imported after installing; restart Slicer and "
+                           "press Apply again")
+
+
 def check_python() -> None:
     """Raise ``RuntimeError`` when this Slicer's Python is older than dpcn_med supports."""
     if sys.version_info < MINIMUM_PYTHON:

@@ -7,19 +7,22 @@ Python console and batch scripts. Neither needs Qt or the Slicer application.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import SimpleITK as sitk
 
 from DPCNRegistrationLib import process
 from DPCNRegistrationLib.process import Event, Job, Options
-from DPCNRegistrationLib.transforms import base_transform_node, place_result, read_transform_file
+from DPCNRegistrationLib.transforms import base_transform_node, place_result, read_transform_file, reusable_output
 from DPCNRegistrationLib.volumes import (
     image_to_volume,
     mask_on_volume,
@@ -29,6 +32,8 @@ from DPCNRegistrationLib.volumes import (
 )
 
 CONFIDENCE_ATTRIBUTE = "DPCNRegistration.Confidence"
+WORLD_TOLERANCE = 1e-9
+"""Largest change of a to-world matrix entry (mm, or unitless for rotation) taken as no change during a run."""
 
 
 class RegistrationError(RuntimeError):
@@ -61,7 +66,8 @@ class Registration:
         options: the registration's choices.
         fixed_mask, moving_mask: optional label map nodes; only the voxels of each volume under its mask's non-zero
             voxels (as shown in the views) are registered (:func:`~DPCNRegistrationLib.volumes.mask_on_volume`).
-        output_transform: linear transform node to write (a new one when ``None``).
+        output_transform: linear transform node to write; a new one, named for the pair, when ``None`` or when
+            writing it would move other nodes (:func:`~DPCNRegistrationLib.transforms.reusable_output`).
         output_volume: scalar volume node to fill with the resampled moving volume (none when ``None``).
         python: the Python to run dpcn-med with (default :func:`process.python_executable`).
         workspace: folder for the temporary files (default the system's); they are deleted when the run ends.
@@ -74,19 +80,23 @@ class Registration:
     def __init__(self, fixed, moving, options: Options | None = None, *, fixed_mask=None, moving_mask=None,
                  output_transform=None, output_volume=None, python: str | None = None,
                  workspace: str | None = None) -> None:
-        _check_inputs(fixed, moving, output_transform, output_volume, (fixed_mask, moving_mask))
+        _check_inputs(fixed, moving, output_volume, (fixed_mask, moving_mask))
+        output_transform = reusable_output(output_transform, moving, moving_mask)
+        _check_output_transform(fixed, moving, output_transform)
         options = options or Options()
         self.fixed, self.moving, self.options = fixed, moving, options
         self.scene = moving.GetScene()
         self.output_transform, self.output_volume = output_transform, output_volume
         self.base = base_transform_node(moving, output_transform)
+        # Where the result lands depends on these; _load refuses it if either changed during the run.
+        self.worlds = {"moving": transform_to_world(self.base), "fixed": parent_to_world(fixed)}
         self.started = time.perf_counter()
         self.folder = Path(tempfile.mkdtemp(prefix="DPCNRegistration-", dir=workspace))
         self.names: dict[str, str] = {}  # the temporary files' paths and the nodes they hold, for dpcn-med's messages
         try:
             paths = {}
-            for role, volume, world, mask in (("fixed", fixed, parent_to_world(fixed), fixed_mask),
-                                              ("moving", moving, transform_to_world(self.base), moving_mask)):
+            for role, volume, mask in (("fixed", fixed, fixed_mask), ("moving", moving, moving_mask)):
+                world = self.worlds[role]
                 image = volume_to_image(volume, world=world)
                 paths[role] = self.folder / f"{role}.nrrd"
                 sitk.WriteImage(image, str(paths[role]))
@@ -114,9 +124,13 @@ class Registration:
         return self.job.finished
 
     def cancel(self) -> None:
-        """Stop the process and delete its files; the scene is left as it was."""
+        """Stop the process without waiting for it (:meth:`process.Job.cancel`); its files are deleted once it has
+        ended, by :meth:`finish` or else in the background. The scene is left as it was."""
         self.job.cancel()
-        self.job.wait(10)
+        threading.Thread(target=self._delete_files_when_ended, daemon=True).start()
+
+    def _delete_files_when_ended(self) -> None:
+        self.job.wait()
         shutil.rmtree(self.folder, ignore_errors=True)
 
     def finish(self) -> Result:
@@ -144,12 +158,14 @@ class Registration:
         the first node changes.
 
         Raises:
-            RegistrationError: a file is missing or unreadable, or report.json lacks a value this module shows.
+            RegistrationError: a file is missing or unreadable, report.json lacks a value this module shows, or a node
+                the result depends on was removed or moved while the process ran.
         """
-        for node in (self.fixed, self.moving, self.output_transform, self.output_volume):
+        for node in (self.fixed, self.moving, self.base, self.output_transform, self.output_volume):
             if node is not None and not self.scene.IsNodePresent(node):
                 raise RegistrationError(f"{node.GetName()}: was removed from the scene while it was being registered; "
                                         "the scene is left as it is")
+        self._check_unmoved()
         report = _read_report(folder / "report.json")
         path = folder / "transform.tfm"
         _require(path)
@@ -180,6 +196,26 @@ class Registration:
                       overlap=float(report["overlap_fraction"]), report=report,
                       seconds=time.perf_counter() - self.started)
 
+    def _check_unmoved(self) -> None:
+        """Raise :class:`RegistrationError` unless the moving volume still hangs under its base (or the output) and
+        both volumes' transforms to world are those registered: the result is only right in that frame."""
+        parent = self.moving.GetParentTransformNode()
+        parent_id = parent.GetID() if parent is not None else None
+        under_base = parent_id == (self.base.GetID() if self.base is not None else None) or (
+            self.output_transform is not None and parent_id == self.output_transform.GetID())
+
+        def unchanged(role: str, transform) -> bool:
+            try:
+                return np.allclose(transform_to_world(transform), self.worlds[role], rtol=0, atol=WORLD_TOLERANCE)
+            except ValueError:  # made non-linear meanwhile
+                return False
+
+        for volume, kept in ((self.moving, under_base and unchanged("moving", self.base)),
+                             (self.fixed, unchanged("fixed", self.fixed.GetParentTransformNode()))):
+            if not kept:
+                raise RegistrationError(f"{volume.GetName()}: its parent transforms changed while it was being "
+                                        "registered; the scene is left as it is: apply again")
+
 
 def register_volumes(fixed, moving, options: Options | None = None, *, fixed_mask=None, moving_mask=None,
                      output_transform=None, output_volume=None, progress: Callable[[str, float], None] | None = None,
@@ -197,6 +233,8 @@ def register_volumes(fixed, moving, options: Options | None = None, *, fixed_mas
             time.sleep(0.05)
     except BaseException:
         registration.cancel()
+        with contextlib.suppress(RegistrationError):
+            registration.finish()  # no GUI to keep responsive here: wait for the process to end, delete its files
         raise
     return registration.finish()
 
@@ -234,7 +272,7 @@ def _read_report(path: Path) -> dict:
     return report
 
 
-def _check_inputs(fixed, moving, output_transform, output_volume, masks=(None, None)) -> None:
+def _check_inputs(fixed, moving, output_volume, masks=(None, None)) -> None:
     for role, node in (("fixed", fixed), ("moving", moving)):
         if node is None:
             raise ValueError(f"choose a {role} volume")
@@ -250,13 +288,17 @@ def _check_inputs(fixed, moving, output_transform, output_volume, masks=(None, N
     if output_volume is not None and output_volume.GetID() in inputs + [m.GetID() for m in masks if m is not None]:
         raise ValueError(f"{output_volume.GetName()}: the output volume is an input; choose or create another "
                          "(inputs are never overwritten)")
-    if output_transform is not None:
-        for role, parent in (("fixed", fixed.GetParentTransformNode()),
-                             ("moving", base_transform_node(moving, output_transform))):
-            # The moving volume directly under the output is a repeated registration; deeper, MRML would refuse to
-            # put the output under the moving volume's base (a cycle) and the result would land elsewhere.
-            while parent is not None:
-                if parent.GetID() == output_transform.GetID():
-                    raise ValueError(f"{output_transform.GetName()}: the {role} volume depends on this output "
-                                     "transform (through another transform); choose another output transform")
-                parent = parent.GetParentTransformNode()
+
+
+def _check_output_transform(fixed, moving, output_transform) -> None:
+    if output_transform is None:
+        return
+    for role, parent in (("fixed", fixed.GetParentTransformNode()),
+                         ("moving", base_transform_node(moving, output_transform))):
+        # The moving volume directly under the output is a repeated registration; deeper, MRML would refuse to
+        # put the output under the moving volume's base (a cycle) and the result would land elsewhere.
+        while parent is not None:
+            if parent.GetID() == output_transform.GetID():
+                raise ValueError(f"{output_transform.GetName()}: the {role} volume depends on this output "
+                                 "transform (through another transform); choose another output transform")
+            parent = parent.GetParentTransformNode()

@@ -11,6 +11,7 @@ import json
 import os
 import queue
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -18,8 +19,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 SCRIPT = Path(__file__).with_name("run_registration.py")
+_NO_WINDOW = getattr(subprocess, "CREATE_NO_WINDOW", 0)
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_LOW_CONFIDENCE = 0, 1, 2, 3
 """dpcn-med's exit codes (dpcn_med.cli); 3 means a result was written with a low confidence."""
+KILL_AFTER_S = 3.0
+"""Seconds a cancelled process has to end on SIGTERM before it is killed."""
 
 
 @dataclass(frozen=True)
@@ -106,7 +110,9 @@ class Job:
         self._process = subprocess.Popen(arguments, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                          encoding="utf-8", errors="replace", bufsize=1, env=environment,
                                          # Windows: no console window beside Slicer's (as Slicer's own launcher)
-                                         creationflags=getattr(subprocess, "CREATE_NO_WINDOW", 0))
+                                         creationflags=_NO_WINDOW,
+                                         # POSIX: its own process group, so that cancel reaches what it starts
+                                         start_new_session=os.name == "posix")
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
@@ -140,14 +146,33 @@ class Job:
         return self.poll()
 
     def cancel(self) -> None:
-        """Stop the process (terminate, then kill after 5 s); its partial outputs are the caller's to delete."""
+        """Stop the process and the processes it started, without waiting: it has ended when :attr:`finished`.
+
+        PythonSlicer is a launcher that runs Slicer's Python as its child, so stopping the launcher alone would leave
+        the registration running. On POSIX its process group gets SIGTERM, then SIGKILL after :data:`KILL_AFTER_S`
+        seconds; on Windows ``taskkill /T /F`` ends its process tree. Partial outputs are the caller's to delete.
+        """
+        if self.cancelled:
+            return
         self.cancelled = True
-        if self._process.poll() is None:
-            self._process.terminate()
+        threading.Thread(target=self._stop, daemon=True).start()
+
+    def _stop(self) -> None:
+        if os.name == "nt":
+            # /F: no gentler way reaches a process without a console (CREATE_NO_WINDOW), Ctrl+Break included.
+            subprocess.run(["taskkill", "/T", "/F", "/PID", str(self._process.pid)], stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL, creationflags=_NO_WINDOW, check=False)
+            return
+        # While the reader runs, a process still holds the output pipe and the group leader is not reaped yet (the
+        # reader reaps it), so its process group ID cannot have been reused by another group.
+        for number in (signal.SIGTERM, signal.SIGKILL):
+            if not self._reader.is_alive():
+                return
             try:
-                self._process.wait(5)
-            except subprocess.TimeoutExpired:
-                self._process.kill()
+                os.killpg(self._process.pid, number)
+            except ProcessLookupError:
+                return
+            self._reader.join(KILL_AFTER_S)
 
     def error_message(self) -> str:
         """dpcn-med's one-line error (its last line starting ``dpcn-med:``), else the child's last line of output."""

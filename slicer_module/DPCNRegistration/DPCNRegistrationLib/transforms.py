@@ -51,6 +51,28 @@ def base_transform_node(moving, output):
     return parent
 
 
+def reusable_output(output, moving, moving_mask=None):
+    """``output`` when writing it moves nothing it should not, else ``None`` (a new transform node is made).
+
+    A transform tagged with another moving volume (:data:`ROLE_ATTRIBUTES`) holds that volume's registration; an
+    untagged one with nodes under it other than ``moving`` and ``moving_mask`` holds the user's nodes. Writing either
+    would move those nodes off where they are. Nodes under a transform tagged with ``moving`` itself were put there to
+    follow it (its segmentation, say), and follow it again.
+    """
+    if output is None:
+        return None
+    registered = output.GetAttribute(ROLE_ATTRIBUTES[1])
+    if registered:
+        return output if registered == moving.GetID() else None
+    following = {node.GetID() for node in (moving, moving_mask) if node is not None}
+    children = moving.GetScene().GetNodesByClass("vtkMRMLTransformableNode")
+    for index in range(children.GetNumberOfItems()):
+        child = children.GetItemAsObject(index)
+        if child.GetTransformNodeID() == output.GetID() and child.GetID() not in following:
+            return None
+    return output
+
+
 def place_result(registration: np.ndarray, moving, fixed, output, base) -> None:
     """Set ``output`` so that the moving volume, under it, lands on the fixed one.
 
