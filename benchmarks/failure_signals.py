@@ -33,13 +33,14 @@ from scipy.stats import mannwhitneyu
 
 from dpcn_med.benchmark import SUCCESS_MM
 from dpcn_med.cli import MIN_CONFIDENCE
+from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
 from dpcn_med.io import read_csv, write_csv
 from dpcn_med.preprocess import foreground_mask
 from dpcn_med.register import register
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, generated_by, publish, refuse_run_options  # noqa: E402  (the scripts' shared helpers)
 from partial_fov import (  # noqa: E402  (the same slabs and poses)
     CASES,
     case_images,
@@ -103,6 +104,25 @@ def run(case: str, overlaps: list[float], trials: int, seed: int) -> list[dict]:
     return rows
 
 
+def combined_rows(paths: list[Path]) -> list[dict]:
+    """The rows of earlier runs' CSVs, in the files' order.
+
+    Raises:
+        InputError: a missing or malformed file (:func:`dpcn_med.io.read_csv`), or a pose (case, overlap, trial)
+            found twice: a file given twice would count its poses twice.
+    """
+    rows, seen = [], {}
+    for path in paths:
+        for line, row in read_csv(path, ROW_FIELDS):
+            key = (row["case"], round(100 * row["overlap_fraction"]), row["trial"])
+            if key in seen:
+                raise InputError(f"{path}: line {line}: {row['case']}, {row['overlap_fraction']:.0%} overlap, trial "
+                                 f"{row['trial']} is also in {seen[key]}")
+            seen[key] = path
+            rows.append(row)
+    return rows
+
+
 def separation(rows: list[dict]) -> str:
     """The table: per signal, medians over successes and failures, ROC AUC and failures flagged at 5% false
     alarms."""
@@ -145,17 +165,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--overlaps", nargs="+", type=overlap_type, default=[0.6, 0.4],
                         help="shares of the fixed foreground's extent kept, in (0, 1], whole percents")
     parser.add_argument("--trials", type=count_type(), default=20)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=count_type(0), default=0)
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "failure_signals.md",
                         help="the table; every registration (.csv) goes beside it")
     parser.add_argument("--combine", nargs="+", type=Path, metavar="CSV",
-                        help="run nothing: the table of earlier runs' per-pose CSVs")
+                        help="run nothing: the table of earlier runs' per-pose CSVs; with --output and --note only")
     parser.add_argument("--note", default="", help="a sentence for the description, e.g. how the combined rows ran")
     args = parser.parse_args(argv)
     check_overlaps(parser, args.overlaps)
+    if args.combine:
+        refuse_run_options(parser, argv, {"cases": "--cases", "overlaps": "--overlaps", "trials": "--trials",
+                                          "seed": "--seed"})
     args.output.parent.mkdir(parents=True, exist_ok=True)  # before the work: the CSV is written beside the table
     if args.combine:
-        rows = [row for path in args.combine for _, row in read_csv(path, ROW_FIELDS)]
+        try:
+            rows = combined_rows(args.combine)
+        except InputError as error:
+            parser.error(str(error))
     else:
         rows = [row for case in args.cases for row in run(case, args.overlaps, args.trials, args.seed)]
         write_csv(rows, args.output.with_suffix(".csv"))

@@ -1,5 +1,6 @@
-"""What every benchmark script shares: argparse types for its counts and fractions, and what it does with its table
-(say how it was made, print it, write it under docs/)."""
+"""What every benchmark script shares: argparse types for its counts (:func:`dpcn_med.cli.count_type`, the command
+line's) and fractions, the refusal of run options beside ``--combine``, and what it does with its table (say how it
+was made, print it, write it under docs/)."""
 
 from __future__ import annotations
 
@@ -7,26 +8,12 @@ import argparse
 import shlex
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
+from dpcn_med.cli import count_type
 from dpcn_med.io import write_text
 
-
-def count_type(minimum: int = 1) -> Callable[[str], int]:
-    """An argparse type for a count (poses, trials, repeats): a whole number of at least ``minimum``, so that a
-    mistyped 0 stops at the command line instead of crashing after the data are loaded."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"{value} is too few; give at least {minimum}")
-        return value
-
-    return parse
+__all__ = ["count_type", "fraction_type", "generated_by", "publish", "refuse_run_options"]
 
 
 def fraction_type(text: str) -> float:
@@ -38,6 +25,17 @@ def fraction_type(text: str) -> float:
     if not 0 < value <= 1:  # NaN too
         raise argparse.ArgumentTypeError(f"{text!r} is not a fraction in (0, 1] (1 is the whole)")
     return value
+
+
+def refuse_run_options(parser: argparse.ArgumentParser, argv: list[str] | None, options: dict[str, str]) -> None:
+    """Exit through ``parser`` (code 2) if any of ``options`` (``dest: flag``) was given beside ``--combine``, which
+    runs nothing, so they would be ignored; given, not merely different from its default."""
+    parser.set_defaults(**dict.fromkeys(options))
+    given = vars(parser.parse_args(argv))
+    named = [flag for dest, flag in options.items() if given[dest] is not None]
+    if named:
+        parser.error(f"--combine registers nothing, so {', '.join(named)} cannot apply; give the CSVs, --output and "
+                     "--note only")
 
 
 def generated_by(script: str, argv: list[str] | None) -> str:

@@ -34,6 +34,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from dpcn_med.benchmark import METHODS, SUCCESS_MM, available_methods
+from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.io import atomic_output, read_csv, write_csv
 from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
@@ -41,7 +42,7 @@ from dpcn_med.register import register
 from dpcn_med.solver import SolverConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import count_type, fraction_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, fraction_type, generated_by, publish, refuse_run_options  # noqa: E402  (the scripts' shared helpers)
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -54,6 +55,8 @@ BASELINES = ["sitk-geometry", "sitk-moments", "sitk-exhaustive", "ants-rigid", "
 """The local tools of ``dpcn-med benchmark``'s quick mode (ANTs' multi-start, 25 s a pair, only on request)."""
 SAME_POSES = "dpcn-baseline-poses"
 """The method name of dpcn_med's rows restricted to the poses the baselines ran (:func:`on_baseline_poses`)."""
+SAME_POSES_LABEL = ", on the baselines' poses"
+"""Appended to the label of the dpcn_med rows that :data:`SAME_POSES` rows repeat."""
 
 
 def case_images(name: str) -> tuple[sitk.Image, sitk.Image]:
@@ -156,29 +159,55 @@ def run(case: str, overlaps: list[float], trials: int, seed: int, methods: list[
 
 def on_baseline_poses(rows: list[dict]) -> list[dict]:
     """dpcn_med's rows on the poses that the baselines ran too (the first ``--baseline-trials`` of each cell),
-    renamed :data:`SAME_POSES`: its results like for like with theirs. None for a case where the baselines ran all
-    of dpcn_med's poses, or none of them."""
+    renamed :data:`SAME_POSES`, labelled with :data:`SAME_POSES_LABEL`: its results like for like with theirs. None
+    for a case and label where the baselines ran all of dpcn_med's poses, or none of them."""
     ran = {(r["case"], r["overlap"], r["trial"]) for r in rows if r["method"] not in ("dpcn", SAME_POSES)}
     same = []
-    for case in dict.fromkeys(r["case"] for r in rows):
-        dpcn = [r for r in rows if (r["case"], r["method"]) == (case, "dpcn")]
+    for case, label in dict.fromkeys((r["case"], r["label"]) for r in rows if r["method"] == "dpcn"):
+        dpcn = [r for r in rows if (r["case"], r["method"], r["label"]) == (case, "dpcn", label)]
         shared = [r for r in dpcn if (case, r["overlap"], r["trial"]) in ran]
         if 0 < len(shared) < len(dpcn):
-            same += [{**r, "method": SAME_POSES, "label": f"{r['label']}, on the baselines' poses"} for r in shared]
+            same += [{**r, "method": SAME_POSES, "label": label + SAME_POSES_LABEL} for r in shared]
     return same
 
 
-def table(rows: list[dict], labels: dict[str, str]) -> str:
-    """Per case, one line per method: success at each overlap (``–`` where the method has no poses at it), median
-    TRE and seconds over all its poses."""
+def combined_rows(paths: list[Path]) -> list[dict]:
+    """The rows of earlier runs' per-pose CSVs, in the files' order.
+
+    Raises:
+        InputError: a missing or malformed file (:func:`dpcn_med.io.read_csv`), or a registration (case, overlap,
+            trial, method, label) found twice: a file given twice would count its poses twice.
+    """
+    rows, seen = [], {}
+    for path in paths:
+        for line, row in read_csv(path, ROW_FIELDS):
+            key = (row["case"], round(100 * row["overlap"]), row["trial"], row["method"], row["label"])
+            if key in seen:
+                raise InputError(f"{path}: line {line}: {row['case']}, {row['overlap']:.0%} overlap, trial "
+                                 f"{row['trial']}, {row['method']} ({row['label']}) is also in {seen[key]}")
+            seen[key] = path
+            rows.append(row)
+    return rows
+
+
+def series(rows: list[dict]) -> list[tuple[str, str]]:
+    """The table's lines and the figure's curves, ``(method, label)``: dpcn_med's (each label a variant), its rows on
+    the baselines' poses, then the others as they ran."""
+    found = dict.fromkeys((r["method"], r["label"]) for r in rows)
+    return sorted(found, key=lambda item: (item[0] != "dpcn", item[0] != SAME_POSES))
+
+
+def table(rows: list[dict], lines_of: list[tuple[str, str]]) -> str:
+    """Per case, one line per ``(method, label)`` of ``lines_of``: success at each overlap (``–`` where it has no
+    poses there), median TRE and seconds over all its poses."""
     overlaps = list(dict.fromkeys(r["overlap"] for r in rows))
     lines = []
     for case in dict.fromkeys(r["case"] for r in rows):
         lines += [f"### {CASES[case]}", "",
                   "| method | poses per cell | " + " | ".join(f"{o:.0%} overlap" for o in overlaps)
                   + " | median TRE (mm) | median seconds |", "|---|---|" + "---|" * (len(overlaps) + 2)]
-        for method, label in labels.items():
-            mine = [r for r in rows if (r["case"], r["method"]) == (case, method)]
+        for method, label in lines_of:
+            mine = [r for r in rows if (r["case"], r["method"], r["label"]) == (case, method, label)]
             if not mine:
                 continue
             cells = [[r["tre_mm"] for r in mine if r["overlap"] == o] for o in overlaps]
@@ -192,7 +221,7 @@ def table(rows: list[dict], labels: dict[str, str]) -> str:
     return "\n".join(lines)
 
 
-def figure(rows: list[dict], labels: dict[str, str], path: Path) -> None:
+def figure(rows: list[dict], curves: list[tuple[str, str]], path: Path) -> None:
     """Success against overlap, one panel per case, one line per method (the baselines offset by up to a few
     points so that equal curves do not hide each other; dpcn_med on the baselines' poses dashed, in dpcn_med's
     colour), written atomically."""
@@ -205,17 +234,18 @@ def figure(rows: list[dict], labels: dict[str, str], path: Path) -> None:
     figure_, axes = plt.subplots(1, len(cases), figsize=(4.5 * len(cases), 4.2), squeeze=False,
                                  constrained_layout=True)
     markers = "os^vDP*X"
-    # colours, markers and offsets as without the like-for-like line, which borrows dpcn_med's
-    methods = [method for method in labels if method != SAME_POSES]
+    # colours, markers and offsets as without the like-for-like lines, which borrow their dpcn_med row's
+    own = [curve for curve in curves if curve[0] != SAME_POSES]
     for ax, case in zip(axes[0], cases):
-        for method, label in labels.items():
-            mine = [r for r in rows if (r["case"], r["method"]) == (case, method)]
+        for method, label in curves:
+            mine = [r for r in rows if (r["case"], r["method"], r["label"]) == (case, method, label)]
             overlaps = sorted({r["overlap"] for r in mine})
             success = [100 * statistics.mean(r["tre_mm"] < SUCCESS_MM for r in mine if r["overlap"] == o)
                        for o in overlaps]
-            index = methods.index("dpcn" if method == SAME_POSES else method)
+            index = own.index(("dpcn", label.removesuffix(SAME_POSES_LABEL)) if method == SAME_POSES
+                              else (method, label))
             # equal baselines stay visible side by side; dpcn_med's curves are drawn where they are
-            offset = 0.0 if method in ("dpcn", SAME_POSES) else 1.2 * (index - len(methods) / 2)
+            offset = 0.0 if method in ("dpcn", SAME_POSES) else 1.2 * (index - len(own) / 2)
             style = {"dpcn": {"lw": 2.5}, SAME_POSES: {"lw": 1.5, "ls": "--", "mfc": "none"}}.get(method, {"lw": 1.2})
             ax.plot([100 * o for o in overlaps], [value + offset for value in success], marker=markers[index % 8],
                     color=f"C{index}", label=label, **style)
@@ -238,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="dpcn_med (with the settings below) and local baselines of dpcn_med.benchmark")
     parser.add_argument("--baseline-trials", type=count_type(0), default=10,
                         help="the methods other than dpcn run on the first this many poses of each cell")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=count_type(0), default=0)
     parser.add_argument("--bandwidth", type=int, default=32, help="solver bandwidth B (the CLI's default: 32)")
     parser.add_argument("--sphere-band", type=float, nargs=2, metavar=("LOW", "HIGH"),
                         help="one sphere band instead of the solver's bands, fractions of Nyquist")
@@ -250,15 +280,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--note", default="", help="a sentence for the description, e.g. when the combined rows ran")
     parser.add_argument("--combine", nargs="+", type=Path, metavar="CSV",
                         help="run nothing: the tables and figure of earlier runs' per-pose CSVs (say, one per case, "
-                             "run side by side on separate cores)")
+                             "run side by side on separate cores, or variants with their own --label); with --output "
+                             "and --note only")
     args = parser.parse_args(argv)
     check_overlaps(parser, args.overlaps)
+    if args.combine:
+        refuse_run_options(parser, argv, {
+            "cases": "--cases", "overlaps": "--overlaps", "trials": "--trials", "methods": "--methods",
+            "baseline_trials": "--baseline-trials", "seed": "--seed", "bandwidth": "--bandwidth",
+            "sphere_band": "--sphere-band", "fill": "--fill", "label": "--label"})
     installed = available_methods()
     methods = [m for m in args.methods if m in installed]
     missing = [] if args.combine else [m for m in args.methods if m not in installed]
     args.output.parent.mkdir(parents=True, exist_ok=True)
     if args.combine:
-        rows = [row for path in args.combine for _, row in read_csv(path, ROW_FIELDS)]
+        try:
+            rows = combined_rows(args.combine)
+        except InputError as error:
+            parser.error(str(error))
     else:
         solver = (SolverConfig(sphere_band=tuple(args.sphere_band), extra_sphere_bands=()) if args.sphere_band
                   else None)
@@ -269,9 +308,7 @@ def main(argv: list[str] | None = None) -> int:
         write_csv(rows, args.output.with_suffix(".csv"))  # every registration, for --combine
     same = on_baseline_poses(rows)
     rows += same
-    labels = {row["method"]: row["label"] for row in rows}
-    # dpcn_med's row, its row on the baselines' poses, then the others as they ran
-    labels = dict(sorted(labels.items(), key=lambda item: (item[0] != "dpcn", item[0] != SAME_POSES)))
+    lines_of = series(rows)
     text = (f"# Partial field of view\n\n{generated_by(__file__, argv)}: a slab of the fixed volume "
             f"along a random voxel axis keeping the given share of its foreground's extent, the moving volume whole "
             f"and moved by a random rigid pose (rotation uniform over SO(3), translation up to 40 mm); "
@@ -282,8 +319,8 @@ def main(argv: list[str] | None = None) -> int:
             + (f" Not installed, left out: {', '.join(missing)}." if missing else "")
             + (f" {args.note}" if args.note else "")
             + f"\n\n![success against overlap]({args.output.with_suffix('.png').name})\n\n"
-            + table(rows, labels))
-    figure(rows, labels, args.output.with_suffix(".png"))  # after the table: a failing table leaves the figure as was
+            + table(rows, lines_of))
+    figure(rows, lines_of, args.output.with_suffix(".png"))  # after the table: a failing table leaves the figure as was
     return publish(text, args.output)
 
 

@@ -15,6 +15,9 @@ refused, and the command line's default methods leave them out.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
 import json
 import math
 import os
@@ -38,7 +41,10 @@ from dpcn_med.register import Refinement, refine_transform, register
 SUCCESS_MM = 2.0
 BIN_DEGREES = 30
 JOURNAL = "results.partial.jsonl"
-"""The output folder's record of an unfinished run (:class:`Journal`); removed once ``results.csv`` is written."""
+"""The output folder's record of an unfinished run (:class:`Journal`); removed once ``results.csv`` holds all of
+it."""
+SETTINGS = "settings.json"
+"""Beside ``results.csv``: the settings its poses follow from (:func:`pose_settings`), which ``--combine`` compares."""
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
@@ -54,8 +60,8 @@ class BenchmarkConfig:
         max_shift_mm: translation length up to this.
         seed: of the poses.
         run_bins: names (``"90-120"``) of the bins to register, all when empty; a pose follows from the case, the
-            seed and its place in every bin's sequence, so a run split over processes by bin registers the same poses
-            as one run.
+            seed, the trials and the bins (one random stream per case, drawn bin after bin, ``trials`` poses each),
+            so a run split over processes by bin registers the same poses as one run with the same trials.
     """
 
     cases: tuple[str, ...] = ("mni", "mni-pseudo-ct")
@@ -149,7 +155,8 @@ def _sitk_exhaustive(fixed: sitk.Image, moving: sitk.Image, folder: Path) -> sit
     method = sitk.ImageRegistrationMethod()
     method.SetMetricAsMattesMutualInformation(32)
     method.SetMetricSamplingStrategy(method.RANDOM)
-    method.SetMetricSamplingPercentage(0.05, 0)
+    # The baselines' seed, not 0: SimpleITK takes 0 for the wall clock, a new sample (and result) on every run.
+    method.SetMetricSamplingPercentage(0.05, BASELINE_REFINEMENT.seed)
     method.SetInterpolator(sitk.sitkLinear)
     method.SetShrinkFactorsPerLevel([4])
     method.SetSmoothingSigmasPerLevel([2.0])
@@ -243,10 +250,27 @@ def available_methods() -> tuple[str, ...]:
 
 
 # ------------------------------------------------------------------------------------------------------ measuring
+@functools.cache
+def _malloc_trim() -> Callable[[int], int] | None:
+    """glibc's ``malloc_trim``, ``None`` where the C library has none (macOS, musl, Windows)."""
+    name = ctypes.util.find_library("c")
+    try:
+        return getattr(ctypes.CDLL(name), "malloc_trim", None) if name else None
+    except OSError:
+        return None
+
+
 def reset_peak_rss() -> float | None:
     """Reset this process's resident-set high-water mark (Linux ``clear_refs``) and return the current RSS in MiB;
     ``None`` where the system does not offer it. Loading inputs often peaks higher than the call measured after it,
-    so without the reset the peak would say nothing about that call."""
+    so without the reset the peak would say nothing about that call.
+
+    The C heap's free pages are handed back to the system first (glibc ``malloc_trim``, where there is one): heap
+    that an earlier call freed stays resident, and a later call reusing it would not grow the RSS, so its peak would
+    depend on which methods ran before it in the process."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
     try:
         Path("/proc/self/clear_refs").write_text("5")
         return status_mib("VmRSS")
@@ -358,8 +382,7 @@ class Journal:
         from dpcn_med import __version__
 
         self.path = Path(path)
-        self.settings = {"version": __version__, "seed": config.seed, "trials": config.trials,
-                         "max_shift_mm": config.max_shift_mm, "bins": [f"{low}-{high}" for low, high in config.bins]}
+        self.settings = {"version": __version__, **pose_settings(config)}
 
     def rows(self) -> dict[tuple[str, str, int, str], dict]:
         """The registrations written so far, by ``(case, bin, trial, method)`` (a later line wins).
@@ -371,10 +394,13 @@ class Journal:
             return {}
         lines = io.read_text(self.path).split("\n")
         complete = lines[:-1]  # text after the last line end was cut by the interruption
+        if not complete:  # empty, or its settings line cut: nothing registered yet (append writes them again)
+            return {}
         try:
-            settings = json.loads(complete[0])["settings"] if complete else None
+            settings = json.loads(complete[0])["settings"]
         except (json.JSONDecodeError, KeyError, TypeError):
-            settings = None
+            raise InputError(f"{self.path}: not a journal of dpcn-med benchmark (its first line holds no settings); "
+                             "move it away, or choose another output folder") from None
         if settings != self.settings:
             raise InputError(f"{self.path}: holds an interrupted run with other settings ({settings}, this run "
                              f"{self.settings}); rerun with that run's options, or choose another output folder")
@@ -395,13 +421,20 @@ class Journal:
         with open(self.path, "a+b") as stream:
             stream.seek(0)
             text = stream.read()
-            if not text:
+            if not text.endswith(b"\n"):  # cut by an interruption: drop the partial line
+                text = text[:text.rfind(b"\n") + 1]
+                stream.truncate(len(text))
+            if not text:  # new, or its settings line was cut
                 stream.write((json.dumps({"settings": self.settings}) + "\n").encode())
-            elif not text.endswith(b"\n"):  # cut by an interruption: drop the partial line
-                stream.truncate(text.rfind(b"\n") + 1)
             stream.write((json.dumps({field: row[field] for field in RESULT_FIELDS}) + "\n").encode())
             stream.flush()
             os.fsync(stream.fileno())
+
+
+def pose_settings(config: BenchmarkConfig) -> dict:
+    """The settings a run's poses follow from, besides the case: seed, trials, largest shift and bins."""
+    return {"seed": config.seed, "trials": config.trials, "max_shift_mm": config.max_shift_mm,
+            "bins": [f"{low}-{high}" for low, high in config.bins]}
 
 
 def summarise(rows: list[dict]) -> list[dict]:
@@ -417,26 +450,27 @@ def summarise(rows: list[dict]) -> list[dict]:
             for (case, method, bin_), group in groups.items()]
 
 
-def markdown(summary: list[dict], config: BenchmarkConfig) -> str:
-    """Tables per case: success by rotation bin for every method, then runtime and memory."""
+def markdown(rows: list[dict], config: BenchmarkConfig) -> str:
+    """Tables per case: success by rotation bin for every method, then the medians over all its registrations of
+    the case (not of the bins' medians, which weigh a bin of one pose like one of ten) of TRE, seconds and peak MiB."""
     bins = [f"{low}-{high}" for low, high in config.bins]
-    methods = list(dict.fromkeys(r["method"] for r in summary))
+    success = {(r["case"], r["method"], r["bin"]): r["success"] for r in summarise(rows)}
     lines = []
-    for case in dict.fromkeys(r["case"] for r in summary):
-        cells = {(r["method"], r["bin"]): r for r in summary if r["case"] == case}
+    for case in dict.fromkeys(r["case"] for r in rows):
         lines += [f"### {CASES[case][0]}", "",
-                  "| method | " + " | ".join(f"{b} deg" for b in bins) + " | median TRE (mm) | median s | peak MiB |",
+                  "| method | " + " | ".join(f"{b} deg" for b in bins)
+                  + " | median TRE (mm) | median s | median peak MiB |",
                   "|---|" + "---|" * (len(bins) + 3)]
-        for method in methods:
-            row = [cells[(method, b)] for b in bins if (method, b) in cells]
-            if not row:
+        for method in dict.fromkeys(r["method"] for r in rows):
+            mine = [r for r in rows if (r["case"], r["method"]) == (case, method)]
+            if not mine:
                 continue
             lines.append(f"| {METHODS[method][0]} | "
-                         + " | ".join(f"{100 * cells[(method, b)]['success']:.0f}%" if (method, b) in cells else "-"
-                                      for b in bins)
-                         + f" | {statistics.median(r['median_tre_mm'] for r in row):.2f}"
-                         + f" | {statistics.median(r['median_seconds'] for r in row):.1f}"
-                         + f" | {statistics.median(r['median_peak_mib'] for r in row):.0f} |")
+                         + " | ".join(f"{100 * success[(case, method, b)]:.0f}%" if (case, method, b) in success
+                                      else "-" for b in bins)
+                         + f" | {statistics.median(r['tre_mm'] for r in mine):.2f}"
+                         + f" | {statistics.median(r['seconds'] for r in mine):.1f}"
+                         + f" | {statistics.median(r['peak_mib'] for r in mine):.0f} |")
         lines.append("")
     return "\n".join(lines)
 
@@ -470,20 +504,28 @@ def figure(summary: list[dict], config: BenchmarkConfig, path: Path) -> None:
 
 
 def write_outputs(rows: list[dict], config: BenchmarkConfig, output: str | os.PathLike, *, command: str,
-                  showcase: dict | None = None) -> str:
-    """``results.csv`` (every registration), ``summary.md`` and ``success.png`` in ``output``, and ``render.png``
+                  showcase: dict | None = None, settings: dict | None = None) -> str:
+    """``results.csv`` (every registration), ``summary.md`` and ``success.png`` in ``output``, ``render.png``
     (:func:`dpcn_med.render.before_after`) of the ``showcase`` from :func:`run_benchmark` where pyvista is
-    installed; returns the summary's text."""
+    installed, and :data:`SETTINGS` holding ``settings`` (:func:`pose_settings`) when given; returns the summary's
+    text."""
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     io.write_csv(rows, output / "results.csv")
+    if settings is None:
+        (output / SETTINGS).unlink(missing_ok=True)  # a run's before, in a folder --combine writes over
+    else:
+        io.write_text(json.dumps(settings, indent=2) + "\n", output / SETTINGS)
     summary = summarise(rows)
+    counts = sorted({r["trials"] for r in summary})
+    poses = f"{counts[0]}" if len(counts) == 1 else f"{counts[0]}-{counts[-1]}"
     text = (f"# dpcn_med against SimpleITK, ANTs and elastix\n\nGenerated by `{command}` on "
-            f"{time.strftime('%Y-%m-%d')}; {config.trials} pose(s) per case and bin, rotation angle uniform in the "
+            f"{time.strftime('%Y-%m-%d')}; {poses} pose(s) per case, method and bin, rotation angle uniform in the "
             f"bin about a uniform axis, translation up to {config.max_shift_mm:g} mm; success is a TRE under "
-            f"{SUCCESS_MM:g} mm over the fixed foreground's box; times on one CPU process, peak memory the "
-            f"resident-set growth during the call.\n\n![success against initial rotation](success.png)\n\n"
-            + markdown(summary, config))
+            f"{SUCCESS_MM:g} mm over the fixed foreground's box; medians over every registration of a case and "
+            f"method; times on one CPU process; peak memory the resident-set growth during the call, the C heap's "
+            f"free pages handed back before it, so it counts the memory the call itself touches.\n\n"
+            f"![success against initial rotation](success.png)\n\n" + markdown(rows, config))
     if showcase:
         text += _render(showcase, output / "render.png")
     io.write_text(text, output / "summary.md")
@@ -519,6 +561,31 @@ def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
     if not rows:
         raise InputError(f"{', '.join(map(str, folders))}: no registrations to combine")
     return rows
+
+
+def combined_settings(folders: list[str | os.PathLike]) -> dict | None:
+    """The settings the poses of earlier runs' ``results.csv`` follow from (their :data:`SETTINGS`), ``None`` where a
+    folder has none (runs before it was written).
+
+    Raises:
+        InputError: two folders' settings differ (other poses: rows of one pose number would not be the same pose),
+            or a settings file that cannot be read.
+    """
+    found: dict[Path, dict] = {}
+    for folder in folders:
+        path = Path(folder) / SETTINGS
+        if not path.exists():
+            continue
+        try:
+            settings = json.loads(io.read_text(path))
+        except json.JSONDecodeError as error:
+            raise InputError(f"{path}: not a benchmark's settings ({error})") from None
+        for other, theirs in found.items():
+            if theirs != settings:
+                raise InputError(f"{path}: other settings than {other} ({settings}, there {theirs}): their poses "
+                                 "differ; combine runs with the same --seed, --trials and mode only")
+        found[path] = settings
+    return next(iter(found.values())) if len(found) == len(folders) else None
 
 
 def _checked_row(row: dict, path: Path, line: int) -> tuple[str, str, int, str]:

@@ -19,7 +19,7 @@ import tempfile
 import threading
 import time
 import traceback
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 from dpcn_med import __version__
@@ -100,7 +100,7 @@ def _parser() -> argparse.ArgumentParser:
                                    "training.png.")
     training.add_argument("--config", required=True, type=Path, help="YAML training config")
     training.add_argument("--output", help="output folder (overrides the config's)")
-    training.add_argument("--steps", type=_positive_int, help="optimiser steps (overrides the config's)")
+    training.add_argument("--steps", type=count_type(), help="optimiser steps (overrides the config's)")
     training.add_argument("--device", help="auto, cpu or cuda (overrides the config's)")
     training.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and start afresh")
 
@@ -112,18 +112,23 @@ def _parser() -> argparse.ArgumentParser:
                                 "bin, a few minutes; --full: the shared real volumes too, ten poses per bin.")
     bench.add_argument("-o", "--output", type=output_path, default=Path("benchmark_output"),
                        help="output folder; an interrupted run's registrations are kept there (results.partial.jsonl) "
-                       "and the same command goes on from them")
+                       "and the same command goes on from them; registrations of it that a rerun with fewer --cases, "
+                       "--methods or --bins does not cover stay there for the command that made them")
     bench.add_argument("--full", action="store_true", help="the documented run (docs/benchmarks.md)")
     bench.add_argument("--cases", nargs="+", help="override the mode's cases")
-    bench.add_argument("--methods", nargs="+", help="override the methods (default: every installed one)")
-    bench.add_argument("--trials", type=int, help="poses per case and bin")
-    bench.add_argument("--seed", type=int, help="of the poses (default 0)")
+    bench.add_argument("--methods", nargs="+", help="override the methods (default: the installed ones; quick mode "
+                       "leaves out ants-multistart)")
+    bench.add_argument("--trials", type=count_type(), help="poses per case and bin (quick 1, full 10); a case's poses "
+                       "follow from it, the case and --seed")
+    bench.add_argument("--seed", type=count_type(0), help="of the poses, 0 or more (default 0)")
     bench.add_argument("--bins", nargs="+", metavar="BIN",
                        help="register only these rotation bins, named as in results.csv (90-120); the poses are "
-                       "those of a run of every bin, so runs split by bin over several cores can be combined")
+                       "those of a run of every bin with the same --trials, so runs split by bin over several cores "
+                       "can be combined")
     bench.add_argument("--combine", nargs="+", type=Path, metavar="FOLDER",
                        help="run nothing: one summary and figure of earlier runs' results.csv (say, split by --cases "
-                       "or --bins over several cores; the same poses, which follow from the case and --seed)")
+                       "or --bins over several cores; the same poses, which follow from the case, --seed and "
+                       "--trials: folders whose settings.json differ are refused)")
 
     info = commands.add_parser("info", parents=[tracebacks], help="print an image's geometry and intensity range")
     info.add_argument("image", help="image file or DICOM folder")
@@ -163,14 +168,20 @@ def _finite_float(text: str) -> float:
     return value
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
-    return value
+def count_type(minimum: int = 1) -> Callable[[str], int]:
+    """An argparse type for a count (steps, poses, trials) or a seed: a whole number of at least ``minimum``, so that a
+    mistyped 0 or -1 stops at the command line instead of failing after the data are loaded."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{value} is too few; give at least {minimum}")
+        return value
+
+    return parse
 
 
 def output_path(text: str) -> Path:
@@ -548,14 +559,22 @@ def _benchmark(args: argparse.Namespace) -> int:
         if args.output.resolve() in inputs:
             raise InputError(f"{args.output}: is an input of --combine; choose another output folder")
         rows = benchmark.combine_results(args.combine)
-        config = replace(config, trials=max(row["trial"] for row in rows) + 1)
+        settings = benchmark.combined_settings(args.combine)
     else:
         journal = benchmark.Journal(args.output / benchmark.JOURNAL, config)
         rows = benchmark.run_benchmark(config, progress=lambda line: print(line, file=sys.stderr),
                                        showcase=showcase, skip_missing=not args.methods, journal=journal)
-    print(benchmark.write_outputs(rows, config, args.output, command=args.command_line, showcase=showcase))
+        settings = benchmark.pose_settings(config)
+    print(benchmark.write_outputs(rows, config, args.output, command=args.command_line, showcase=showcase,
+                                  settings=settings))
     if not args.combine:
-        journal.path.unlink(missing_ok=True)  # its rows are in results.csv now
+        done = {(row["case"], row["bin"], row["trial"], row["method"]) for row in rows}
+        left = [key for key in journal.rows() if key not in done]
+        if left:  # registrations of an interrupted run with more cases, methods or bins: its command goes on from them
+            print(f"dpcn-med: {len(left)} registration(s) in {journal.path} are not in this run's cases, methods or "
+                  "bins; kept there for the command that made them", file=sys.stderr)
+        else:
+            journal.path.unlink(missing_ok=True)  # its rows are in results.csv now
     return EXIT_OK
 
 

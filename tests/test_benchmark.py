@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import math
 from dataclasses import replace
 
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 from dpcn_med import benchmark
-from dpcn_med.benchmark import BenchmarkConfig, rotation_in_bin, run_benchmark, write_outputs
+from dpcn_med.benchmark import BenchmarkConfig, markdown, rotation_in_bin, run_benchmark, write_outputs
 from dpcn_med.cli import main
 from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
@@ -58,6 +59,8 @@ class TestRunBenchmark:
 
         text = write_outputs(rows, config, tmp_path / "out", command="test")
         assert {p.name for p in (tmp_path / "out").iterdir()} == {"results.csv", "summary.md", "success.png"}
+        write_outputs(rows, config, tmp_path / "run", command="test", settings=benchmark.pose_settings(config))
+        assert json.loads((tmp_path / "run" / "settings.json").read_text())["bins"] == ["0-30", "150-180"]
         with open(tmp_path / "out" / "results.csv", newline="") as handle:
             assert len(list(csv.DictReader(handle))) == 4
         assert "| dpcn_med learning-free, global estimate only | 100% | 100% |" in text
@@ -117,7 +120,7 @@ class TestRunBenchmark:
         combined = benchmark.combine_results([tmp_path / "both"])
         assert combined == parts[0] + parts[1] and len(combined) == 12
         assert isinstance(combined[0]["trial"], int) and isinstance(combined[0]["tre_mm"], float)
-        assert "1 pose(s) per case and bin" in output and "--combine" in output
+        assert "1 pose(s) per case, method and bin" in output and "--combine" in output
         assert "| dpcn_med learning-free, global estimate only |" in output
         assert "| SimpleITK MI from GEOMETRY initialiser |" in output
         assert (tmp_path / "both" / "success.png").is_file()
@@ -169,8 +172,14 @@ class TestRunBenchmark:
             run_benchmark(replace(config, methods=("dpcn-global", "dpcn-global")))
         with pytest.raises(InputError, match=r"nothing to register: 1 case\(s\), 0 trial\(s\)"):
             run_benchmark(replace(config, trials=0))
-        assert main(["benchmark", "--cases", "mni", "--trials", "-2", "-o", str(tmp_path / "b")]) == 2
-        assert "nothing to register" in capsys.readouterr().err and not (tmp_path / "b").exists()
+        for flag, value, message in (("--trials", "-2", "argument --trials: -2 is too few; give at least 1"),
+                                     ("--trials", "0", "argument --trials: 0 is too few; give at least 1"),
+                                     ("--seed", "-1", "argument --seed: -1 is too few; give at least 0"),
+                                     ("--seed", "x", "argument --seed: 'x' is not a whole number")):
+            with pytest.raises(SystemExit) as exit_:  # at the command line, before any volume is loaded
+                main(["benchmark", "--cases", "mni", flag, value, "-o", str(tmp_path / "b")])
+            assert exit_.value.code == 2 and message in capsys.readouterr().err
+        assert not (tmp_path / "b").exists()
         (tmp_path / "file").write_text("x")
         assert main(["benchmark", "--cases", "mni", "-o", str(tmp_path / "file")]) == 2
         assert "exists and is not a folder" in capsys.readouterr().err
@@ -184,6 +193,71 @@ class TestRunBenchmark:
                              skip_missing=True)
         assert [r["method"] for r in rows] == ["dpcn-global"]
         assert said[0] == "left out: ants-rigid needs antspyx (pip install 'dpcn_med[benchmark]')"
+
+
+def _row(bin_: str, trial: int, method: str, tre: float, seconds: float = 1.0, peak: float = 10.0) -> dict:
+    return {"case": "mni", "bin": bin_, "trial": trial, "method": method, "tre_mm": tre, "seconds": seconds,
+            "peak_mib": peak}
+
+
+def _results(folder, rows: list[dict], settings: dict | None = None):
+    folder.mkdir()
+    header = ",".join(benchmark.RESULT_FIELDS)
+    lines = [",".join(str(row[field]) for field in benchmark.RESULT_FIELDS) for row in rows]
+    (folder / "results.csv").write_text("\n".join([header, *lines]) + "\n")
+    if settings is not None:
+        (folder / "settings.json").write_text(json.dumps(settings))
+    return folder
+
+
+class TestSummary:
+    def test_medians_are_over_the_registrations_not_the_bins_medians(self):
+        """One pose in 0-30, three in 30-60: the bins' medians (1, 20) have median 10.5; the four registrations 15."""
+        rows = [_row("0-30", 0, "dpcn", 1.0, 1.0, 100.0),
+                *(_row("30-60", trial, "dpcn", tre, tre, 10 * tre) for trial, tre in enumerate((10.0, 20.0, 30.0)))]
+        text = markdown(rows, BenchmarkConfig(bins=((0, 30), (30, 60))))
+        assert "| median TRE (mm) | median s | median peak MiB |" in text
+        assert "| dpcn_med learning-free + refinement (defaults) | 100% | 0% | 15.00 | 15.0 | 150 |" in text
+
+    def test_sitk_exhaustive_samples_with_a_fixed_seed(self, monkeypatch):
+        """SimpleITK takes seed 0 for the wall clock: a new sample, and result, on every run."""
+        seeds: list[int] = []
+
+        def spy(self, percentage, seed=0):
+            seeds.append(seed)
+            raise InterruptedError  # the seed is all this test needs
+
+        monkeypatch.setattr(benchmark.sitk.ImageRegistrationMethod, "SetMetricSamplingPercentage", spy)
+        image = mni_2mm()
+        with pytest.raises(InterruptedError):
+            benchmark.METHODS["sitk-exhaustive"][2](image, image, None)
+        assert seeds == [benchmark.BASELINE_REFINEMENT.seed] and seeds[0] != 0
+
+    def test_combine_counts_the_poses_of_every_cell(self, tmp_path, capsys):
+        """Cells of 2 and 1 poses give a range (the highest trial number told nothing about the others)."""
+        one = _results(tmp_path / "one", [_row("0-30", 0, "dpcn", 0.1), _row("0-30", 1, "dpcn", 0.1)])
+        two = _results(tmp_path / "two", [_row("0-30", 0, "sitk-geometry", 0.1)])
+        assert main(["benchmark", "--combine", str(one), str(two), "-o", str(tmp_path / "out")]) == 0
+        assert "1-2 pose(s) per case, method and bin" in capsys.readouterr().out
+
+    def test_combine_refuses_folders_of_other_settings(self, tmp_path, capsys):
+        settings = benchmark.pose_settings(BenchmarkConfig(trials=2))
+        one = _results(tmp_path / "one", [_row("0-30", 0, "dpcn", 0.1)], settings)
+        two = _results(tmp_path / "two", [_row("0-30", 0, "sitk-geometry", 0.1)], {**settings, "trials": 1})
+        old = _results(tmp_path / "old", [_row("0-30", 0, "elastix-rigid", 0.1)])  # before settings.json
+        assert main(["benchmark", "--combine", str(one), str(two), "-o", str(tmp_path / "out")]) == 2
+        assert "two/settings.json: other settings than" in capsys.readouterr().err
+        assert not (tmp_path / "out").exists()
+        assert main(["benchmark", "--combine", str(one), str(old), "-o", str(tmp_path / "out")]) == 0
+        assert not (tmp_path / "out" / "settings.json").exists()  # the old folder's settings are unknown
+        assert main(["benchmark", "--combine", str(one), "-o", str(tmp_path / "same")]) == 0
+        assert json.loads((tmp_path / "same" / "settings.json").read_text()) == settings
+
+    def test_the_help_names_the_methods_quick_mode_leaves_out(self, capsys):
+        with pytest.raises(SystemExit):
+            main(["benchmark", "--help"])
+        assert "quick mode leaves out ants-multistart" in " ".join(capsys.readouterr().out.split())
+        assert set(benchmark.METHODS) - set(benchmark.QUICK.methods) == {"ants-multistart"}
 
 
 class TestJournal:
@@ -224,6 +298,40 @@ class TestJournal:
         err = capsys.readouterr().err
         assert "results.partial.jsonl: holds an interrupted run with other settings" in err and "'trials': 2" in err
         assert sorted(p.name for p in (tmp_path / "b").iterdir()) == [benchmark.JOURNAL]
+
+    def test_registrations_outside_a_narrower_rerun_are_kept(self, tmp_path, capsys):
+        """An interrupted run's registrations that a rerun with fewer methods does not cover stay in the journal, for
+        the interrupted run's command to go on from; those it covers are in results.csv."""
+        journal = benchmark.Journal(tmp_path / "b" / benchmark.JOURNAL, BenchmarkConfig(trials=1))
+        other = {**_row("0-30", 0, "sitk-geometry", 0.5), "peak_mib": 1.0}
+        journal.append(other)
+        assert main(["benchmark", "--cases", "mni", "--methods", "dpcn-global", "--trials", "1", "--bins", "0-30",
+                     "-o", str(tmp_path / "b")]) == 0
+        assert "1 registration(s) in" in capsys.readouterr().err
+        assert journal.rows()[("mni", "0-30", 0, "sitk-geometry")] == other
+        assert [r["method"] for r in benchmark.combine_results([tmp_path / "b"])] == ["dpcn-global"]
+        assert main(["benchmark", "--cases", "mni", "--methods", "dpcn-global", "sitk-geometry", "--trials", "1",
+                     "--bins", "0-30", "-o", str(tmp_path / "b")]) == 0
+        assert not journal.path.exists()  # every registration of it is in results.csv now
+        rows = benchmark.combine_results([tmp_path / "b"])
+        assert [r["method"] for r in rows] == ["dpcn-global", "sitk-geometry"] and rows[1] == other
+
+    @pytest.mark.parametrize("text", ["", '{"settings": {"version": "0', '{"settings"'])
+    def test_a_journal_without_a_whole_first_line_is_empty(self, tmp_path, text):
+        """Cut before its settings line ended (or made empty): nothing registered, and the settings are written again
+        (it blocked the run with 'other settings (None, ...)', and a row was appended without them)."""
+        journal = benchmark.Journal(tmp_path / benchmark.JOURNAL, BenchmarkConfig())
+        journal.path.write_text(text)
+        assert journal.rows() == {}
+        journal.append(_row("0-30", 0, "dpcn", 0.5))
+        assert json.loads(journal.path.read_text().splitlines()[0]) == {"settings": journal.settings}
+        assert list(journal.rows()) == [("mni", "0-30", 0, "dpcn")]
+
+    def test_a_file_that_is_not_a_journal_is_refused(self, tmp_path):
+        journal = benchmark.Journal(tmp_path / benchmark.JOURNAL, BenchmarkConfig())
+        journal.path.write_text("case,bin\n")
+        with pytest.raises(InputError, match=r"results\.partial\.jsonl: not a journal of dpcn-med benchmark"):
+            journal.rows()
 
     def test_a_line_cut_by_the_interruption_is_dropped(self, tmp_path):
         journal = benchmark.Journal(tmp_path / benchmark.JOURNAL, BenchmarkConfig())

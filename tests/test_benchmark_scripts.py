@@ -44,6 +44,8 @@ class TestCounts:
         ("partial_fov", ["--trials", "0"], "argument --trials: 0 is too few"),
         ("partial_fov", ["--baseline-trials", "-1"], "argument --baseline-trials: -1 is too few"),
         ("failure_signals", ["--trials", "0"], "argument --trials: 0 is too few"),
+        ("partial_fov", ["--seed", "-1"], "argument --seed: -1 is too few; give at least 0"),
+        ("failure_signals", ["--seed", "-1"], "argument --seed: -1 is too few; give at least 0"),
         ("cli_time", ["--repeats", "0"], "argument --repeats: 0 is too few"),
         ("solver_speed", ["--repeats", "0"], "argument --repeats: 0 is too few"),
         ("solver_speed", ["--devices", "gpu"], "argument --devices: 'gpu' is not a torch device"),
@@ -93,9 +95,9 @@ class TestOverlaps:
         assert found.GetParameters() == truth.GetParameters()
 
 
-def _write_rows(path: Path, rows: list[tuple]) -> Path:
+def _write_rows(path: Path, rows: list[tuple], dpcn_label: str = "dpcn_med") -> Path:
     """A partial_fov CSV of ``(case, overlap, trial, method, tre_mm)`` rows (10 s each)."""
-    labels = {"dpcn": "dpcn_med", "sitk-geometry": "SimpleITK"}
+    labels = {"dpcn": dpcn_label, "sitk-geometry": "SimpleITK"}
     with open(path, "w", newline="") as stream:
         writer = csv.writer(stream)
         writer.writerow(["case", "overlap", "trial", "method", "tre_mm", "seconds", "label"])
@@ -119,6 +121,43 @@ class TestPartialFovCombine:
         assert sum("on the baselines' poses |" in line for line in lines) == 1  # not for a case without baselines
         assert output.with_suffix(".png").stat().st_size > 0
         assert sorted(path.name for path in output.parent.iterdir()) == ["partial_fov.md", "partial_fov.png"]
+
+    def test_variants_keep_their_own_lines(self, tmp_path):
+        """Two --label variants of dpcn_med on the same poses: a line each (they were merged under the last label)."""
+        poses = [("pseudo-ct", 0.6, trial, "dpcn", 0.1 if trial else 50.0) for trial in range(2)]
+        defaults = _write_rows(tmp_path / "a.csv", [*poses, ("pseudo-ct", 0.6, 0, "sitk-geometry", 100.0)])
+        variant = _write_rows(tmp_path / "b.csv", [(*pose[:4], 0.2) for pose in poses], dpcn_label="B = 64")
+        output = tmp_path / "partial_fov.md"
+        assert script("partial_fov").main(["--combine", str(defaults), str(variant), "--output", str(output)]) == 0
+        lines = output.read_text().splitlines()
+        assert "| dpcn_med | 2 | 50% | 25.05 | 10.0 |" in lines and "| B = 64 | 2 | 100% | 0.20 | 10.0 |" in lines
+        assert "| dpcn_med, on the baselines' poses | 1 | 0% | 50.00 | 10.0 |" in lines
+        assert "| B = 64, on the baselines' poses | 1 | 100% | 0.20 | 10.0 |" in lines
+
+    @pytest.mark.parametrize("name", ["partial_fov", "failure_signals"])
+    def test_a_file_given_twice_is_refused(self, name, tmp_path, capsys):
+        committed = {"partial_fov": ROOT / "docs" / "benchmarks" / "partial_fov" / "mr-mr.csv",
+                     "failure_signals": ROOT / "docs" / "benchmarks" / "failure_signals.csv"}[name]
+        output = tmp_path / "table.md"
+        with pytest.raises(SystemExit) as exit_:
+            script(name).main(["--combine", str(committed), str(committed), "--output", str(output)])
+        assert exit_.value.code == 2
+        assert f"{committed.name}: line 2: " in capsys.readouterr().err
+        assert not output.exists()
+
+    @pytest.mark.parametrize("name, argv, flags", [
+        ("partial_fov", ["--trials", "20", "--label", "x"], "--trials, --label"),
+        ("partial_fov", ["--cases", "mr-mr", "--fill", "0.5"], "--cases, --fill"),
+        ("failure_signals", ["--overlaps", "0.4", "--seed", "0"], "--overlaps, --seed"),
+    ])
+    def test_run_options_are_refused_with_combine(self, name, argv, flags, tmp_path, capsys):
+        """They would be ignored: --combine runs nothing (even an option given at its default)."""
+        output = tmp_path / "table.md"
+        with pytest.raises(SystemExit) as exit_:
+            script(name).main(["--combine", str(tmp_path / "a.csv"), *argv, "--output", str(output)])
+        assert exit_.value.code == 2
+        assert f"--combine registers nothing, so {flags} cannot apply" in capsys.readouterr().err
+        assert not any(tmp_path.iterdir())
 
     def test_the_committed_table_is_its_csvs_combined(self, tmp_path):
         committed = ROOT / "docs" / "benchmarks" / "partial_fov.md"

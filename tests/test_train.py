@@ -218,12 +218,14 @@ class TestBadConfig:
         assert len(err.splitlines()) == 1 and re.search(message, err), err
         assert [p.name for p in tmp_path.iterdir()] == ["tiny.yaml"]
 
-    @pytest.mark.parametrize("steps", ["0", "-5", "two"])
-    def test_steps_option_must_be_positive(self, steps, tmp_path, capsys):
+    @pytest.mark.parametrize("steps,message", [("0", "0 is too few; give at least 1"),
+                                               ("-5", "-5 is too few; give at least 1"),
+                                               ("two", "'two' is not a whole number")])
+    def test_steps_option_must_be_positive(self, steps, message, tmp_path, capsys):
         (tmp_path / "tiny.yaml").write_text(TINY_YAML)
         with pytest.raises(SystemExit) as caught:
             main(["train", "--config", str(tmp_path / "tiny.yaml"), "--steps", steps])
-        assert caught.value.code == 2 and f"--steps: '{steps}' is not" in capsys.readouterr().err
+        assert caught.value.code == 2 and f"--steps: {message}" in capsys.readouterr().err
         assert [p.name for p in tmp_path.iterdir()] == ["tiny.yaml"]
 
     @pytest.mark.parametrize("device, message", [
