@@ -719,13 +719,15 @@ def read_transform(path: str | os.PathLike) -> sitk.Transform:
 
     Raises:
         InputNotFoundError: the path does not exist.
-        InputError: the file is not a readable transform, not 3-D, or holds non-finite parameters.
+        InputError: the file is not a readable transform, not 3-D, holds non-finite parameters, or (a text file) a
+            parameter that is not a number or a linear transform with another number of parameters than its class.
     """
     name = os.fspath(path)
     if not os.path.exists(name):
         raise InputNotFoundError(f"{name}: not found (no such file); check the path")
     if os.path.isdir(name):
         raise InputError(f"{name}: is a folder; expected a transform file ({', '.join(TRANSFORM_SUFFIXES)})")
+    _check_transform_text(name)
     try:
         transform = sitk.ReadTransform(name)
     except RuntimeError as error:
@@ -736,6 +738,56 @@ def read_transform(path: str | os.PathLike) -> sitk.Transform:
     if not _finite_parameters(transform):
         raise InputError(f"{name}: holds NaN or infinite parameters; compute and write the transform again")
     return transform.Downcast()
+
+
+def _check_transform_text(name: str) -> None:
+    """Refuse an ITK text transform file whose parameters ITK would misread, before it reads them.
+
+    ITK stops at the first token of a ``Parameters:`` line that is not a number (``nan``, ``abc``) and keeps what it
+    read; when a linear transform then has fewer parameters than its class, it reads past them, and the process dies
+    of heap corruption ("corrupted size vs. prev_size"), or goes on with values from uninitialised memory.
+    """
+    with open(name, "rb") as file:
+        if not file.read(64).startswith(b"#Insight Transform File"):
+            return  # HDF5, or not a transform: ReadTransform says so
+    lines = read_text(name, encoding="latin-1").splitlines()
+    kind = None
+    for number, line in enumerate(lines, start=1):
+        key, _, value = line.partition(":")
+        if key.strip() == "Transform":
+            kind = value.strip()
+        elif key.strip() in ("Parameters", "FixedParameters"):
+            try:
+                values = [float(token) for token in value.split()]
+            except ValueError:
+                values = [math.nan]
+            if not all(math.isfinite(v) for v in values):
+                raise InputError(f"{name}: line {number}: {key.strip()} holds a value that is not a finite number "
+                                 f"({value.strip()[:80]!r}); compute and write the transform again")
+            expected = _linear_parameter_count(kind) if key.strip() == "Parameters" else None
+            if expected is not None and len(values) != expected:
+                raise InputError(f"{name}: line {number}: {kind} takes {expected} Parameters, the file gives "
+                                 f"{len(values)}; compute and write the transform again")
+
+
+def _linear_parameter_count(kind: str | None) -> int | None:
+    """How many parameters a linear ITK transform class named ``kind`` (``Euler3DTransform_double_3_3``) takes;
+    ``None`` for classes whose count depends on the file (B-splines, fields) or that SimpleITK lacks. (Fixed
+    parameters are left to ITK, which refuses too few and takes 3 or 4 for Euler3DTransform.)"""
+    name = (kind or "").split("_")[0].replace("MatrixOffsetTransformBase", "AffineTransform")
+    factory = getattr(sitk, name, None)
+    if not isinstance(factory, type) or not issubclass(factory, sitk.Transform):
+        return None
+    try:
+        instance = factory()
+    except (TypeError, RuntimeError):
+        try:
+            instance = factory(3)
+        except (TypeError, RuntimeError):
+            return None
+    if instance.GetDimension() != 3 or not instance.IsLinear():
+        return None
+    return len(instance.GetParameters())
 
 
 def _finite_parameters(transform: sitk.Transform) -> bool:

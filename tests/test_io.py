@@ -658,6 +658,29 @@ class TestReadTransform:
         with pytest.raises(InputError, match="is a 2-D transform; expected a 3-D one"):
             io.read_transform(path)
 
+    @pytest.mark.parametrize("parameters,message", [
+        ("0 0 0 1 2", r"line 4: Euler3DTransform_double_3_3 takes 6 Parameters, the file gives 5"),
+        ("0 0 0 1 2 3 4", r"line 4: Euler3DTransform_double_3_3 takes 6 Parameters, the file gives 7"),
+        ("0 0 0 nan 0 0", r"line 4: Parameters holds a value that is not a finite number \('0 0 0 nan 0 0'\)"),
+        ("0 0 0 1 2 abc", r"line 4: Parameters holds a value that is not a finite number \('0 0 0 1 2 abc'\)"),
+    ])
+    def test_parameters_itk_would_misread(self, tmp_path, parameters, message):
+        """ITK stops at 'nan' or 'abc' and keeps the values before; with too few it read past them, and the process
+        died of heap corruption (or went on with garbage)."""
+        path = tmp_path / "t.tfm"
+        path.write_text("#Insight Transform File V1.0\n#Transform 0\nTransform: Euler3DTransform_double_3_3\n"
+                        f"Parameters: {parameters}\nFixedParameters: 0 0 0 0\n")
+        with pytest.raises(InputError, match=rf"t\.tfm: {message}; compute and write the transform again"):
+            io.read_transform(path)
+
+    def test_text_files_of_every_linear_kind_and_composites_still_read(self, tmp_path):
+        for number, transform in enumerate([sitk.AffineTransform(3), sitk.TranslationTransform(3, (1.0, 2.0, 3.0)),
+                                            sitk.Euler3DTransform(), sitk.VersorRigid3DTransform(),
+                                            sitk.ScaleSkewVersor3DTransform(), sitk.ScaleTransform(3),
+                                            sitk.CompositeTransform([similarity(), sitk.Euler3DTransform()])]):
+            sitk.WriteTransform(transform, str(tmp_path / f"t{number}.tfm"))
+            assert io.read_transform(tmp_path / f"t{number}.tfm").GetName() == transform.GetName()
+
     def test_non_finite_parameters(self, tmp_path):
         # HDF5 stores the NaN as it is; ITK's text parser would refuse it already.
         path = tmp_path / "t.h5"

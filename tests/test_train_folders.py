@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -128,7 +129,8 @@ class TestReadTruth:
             read_truth(tmp_path / "mirror.h5", image, image)
 
     def test_standard_honours_origins_and_directions(self, tmp_path):
-        fixed, moving = sitk.Image([4, 4, 4], sitk.sitkFloat32), sitk.Image([4, 4, 4], sitk.sitkFloat32)
+        fixed, moving = sitk.Image([6, 6, 6], sitk.sitkFloat32), sitk.Image([4, 4, 4], sitk.sitkFloat32)
+        fixed.SetSpacing((50.0, 50.0, 24.0))  # the points are its corners, within its extent
         fixed.SetOrigin((-120.0, 30.0, 15.0))
         fixed.SetDirection((0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0))
         moving.SetOrigin((8.0, -90.0, 44.0))
@@ -150,9 +152,13 @@ class TestReadTruth:
         standard = shared_path("rire/ct_T1.standard")
         reference = sitk.ReadTransform(str(shared_path("rire/training_001_ct_to_mr_T1_ground_truth.tfm")))
         mr = io.read_image(shared_path("rire/training_001_mr_T1.mha"))
-        ct = sitk.Image([8, 8, 4], sitk.sitkInt16)  # the CT is not shared: its geometry (origin 0, identity) will do
+        ct = sitk.Image([512, 512, 29], sitk.sitkInt8)  # the CT is not shared: its geometry (origin 0, identity) does
         ct.SetSpacing((333.987 / 512, 333.987 / 512, 4.0))
         found = read_truth(standard, ct, mr)
+        # Given as an MR-to-CT pair's truth, the file's CT corners lie past the MR: it gave the inverse, silently.
+        with pytest.raises(InputError, match=r"ct_T1\.standard: its point 2 \(333\.987, 0, 0 mm\) lies outside the "
+                                             r"fixed image \(extent 320, 320, 104 mm\).*roles swapped"):
+            read_truth(standard, mr, ct)
         from_points, to_points = parse_rire_standard(standard.read_text(), str(standard))
         assert from_points.shape == (8, 3)
         for p, q in zip(from_points, to_points):
@@ -161,8 +167,30 @@ class TestReadTruth:
                                   ) < 0.5
             assert np.linalg.norm(np.subtract(found.TransformPoint(p.tolist()), q)) < 0.01
 
+    @pytest.mark.parametrize("row,shown", [
+        ("5  0.0  0.0  nan  4.8  -21.2  84.7", "'5  0.0  0.0  nan  4.8  -21.2  84.7'"),
+        ("5  0.0  0.0  112.0  4.8  -21.2", "'5  0.0  0.0  112.0  4.8  -21.2'"),
+        ("5  0,0  0,0  112,0  4,8  -21,2  84,7", "'5  0,0  0,0  112,0  4,8  -21,2  84,7'"),
+        ("5  0.0  0.0  1e999  4.8  -21.2  84.7", "'5  0.0  0.0  1e999  4.8  -21.2  84.7'"),  # SVD failed on it
+        ("4  0.0  0.0  112.0  4.8  -21.2  84.7", "'4  0.0  0.0  112.0  4.8  -21.2  84.7'"),  # index 4 twice
+    ])
+    def test_a_malformed_row_is_named(self, tmp_path, row, shown):
+        """Rows that did not match were skipped, and the fit went on with the others."""
+        image = sitk.Image([4, 4, 4], sitk.sitkFloat32)
+        image.SetSpacing((40.0, 40.0, 40.0))
+        corners = np.array([[x, y, z] for z in (0.0, 112.0) for y in (0.0, 100.0) for x in (0.0, 100.0)])
+        _write_standard(tmp_path / "t.standard", corners, corners)
+        lines = (tmp_path / "t.standard").read_text().splitlines()
+        number = next(i for i, line in enumerate(lines) if line.strip().startswith("5 "))
+        lines[number] = row
+        (tmp_path / "t.standard").write_text("\n".join(lines) + "\n")
+        with pytest.raises(InputError, match=rf"t\.standard: line {number + 1}: {re.escape(shown)} is not a point "
+                                             r"row \(an index not given before, then six finite numbers"):
+            read_truth(tmp_path / "t.standard", image, image)
+
     def test_unusable_standard(self, tmp_path):
         image = sitk.Image([4, 4, 4], sitk.sitkFloat32)
+        image.SetSpacing((30.0, 30.0, 30.0))
         (tmp_path / "garbage.standard").write_bytes(b"\x00\xffnot a table\n1 2 3\n")
         with pytest.raises(InputError, match=r"garbage\.standard: holds no point table"):
             read_truth(tmp_path / "garbage.standard", image, image)

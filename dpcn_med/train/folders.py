@@ -22,7 +22,9 @@ A RIRE ``.standard`` file lists points of the "From" volume in its own frame (mi
 the centre of voxel 0, i.e. ``index * spacing``) and their positions in the "To" frame. They become physical points
 through each image's origin and direction (``x = origin + direction @ p``): RIRE's MetaImage files have origin 0 and
 identity direction, so RIRE millimetres are then ITK's LPS points, as in RIRE's own ITK transforms. Reoriented copies
-(voxel order changed, e.g. to RAS) break this; converted copies with another origin or direction do not.
+(voxel order changed, e.g. to RAS) and cropped copies (the points count from the original voxel 0) break this;
+converted copies with another origin or direction do not. "From" points outside the fixed image are refused (roles
+swapped, or a crop).
 
 Convention:
     Physical space is ITK's LPS in millimetres and ground truths map fixed to moving, as in :mod:`dpcn_med.geometry`;
@@ -63,8 +65,8 @@ TRUTH_SUFFIXES = (".tfm", ".h5", ".hdf5", ".standard")
 RIGID_FIT_TOLERANCE_MM = 0.5
 """Largest distance (mm) between a RIRE "To" point and the fitted rigid image of its "From" point."""
 
-_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
-_POINT_ROW = re.compile(rf"^\s*\d+((?:\s+{_NUMBER}){{6}})\s*$")
+_TABLE_HEADER = re.compile(r"^\s*Point\s+x\s+y\s+z\s+new_x\s+new_y\s+new_z\s*$", re.IGNORECASE)
+_ROW_START = re.compile(r"^\s*\d")
 
 
 @dataclass(frozen=True)
@@ -182,7 +184,8 @@ def read_truth(path: str | os.PathLike, fixed_image: sitk.Image, moving_image: s
     Raises:
         InputNotFoundError: the file does not exist.
         InputError: unreadable, or not a similarity (shear, anisotropic scale, reflection, non-linear), or a
-            ``.standard`` without a point table, with fewer than three non-collinear points, or whose points do not
+            ``.standard`` without a point table, with a malformed row, with fewer than three non-collinear points,
+            whose "From" points lie outside the fixed image (roles swapped, or a cropped copy), or whose points do not
             move rigidly; the message names the file.
 
     Convention:
@@ -195,6 +198,7 @@ def read_truth(path: str | os.PathLike, fixed_image: sitk.Image, moving_image: s
         return transform
     # latin-1 decodes any bytes, so a binary file fails in the parser as "no point table".
     from_points, to_points = parse_rire_standard(io.read_text(name, encoding="latin-1"), name)
+    _check_within(from_points, fixed_image, name)
     fixed_points = _rire_to_physical(from_points, fixed_image)
     moving_points = _rire_to_physical(to_points, moving_image)
     fixed_centre, moving_centre = fixed_points.mean(0), moving_points.mean(0)
@@ -222,19 +226,54 @@ def parse_rire_standard(text: str, source: str = "RIRE file") -> tuple[np.ndarra
         ``(new_x, new_y, new_z)`` in the "To" volume's frame.
 
     Raises:
-        InputError: no point table, or fewer than three non-collinear points.
+        InputError: no point table (its header ``Point x y z new_x new_y new_z``, then the rows), a row that is not
+            an index and six finite numbers, an index given twice, or fewer than three non-collinear points.
     """
-    rows = [match.group(1).split() for line in text.splitlines() if (match := _POINT_ROW.match(line))]
-    if not rows:
-        raise InputError(f"{source}: holds no point table (rows 'index x y z new_x new_y new_z'); expected a RIRE "
-                         ".standard ground-truth file")
-    table = np.asarray(rows, dtype=np.float64)
+    lines = text.splitlines()
+    start = next((number for number, line in enumerate(lines, start=1) if _TABLE_HEADER.match(line)), None)
+    if start is None:
+        raise InputError(f"{source}: holds no point table (a header 'Point x y z new_x new_y new_z', then rows "
+                         "'index x y z new_x new_y new_z'); expected a RIRE .standard ground-truth file")
+    rows, indices = [], set()
+    for number, line in enumerate(lines[start:], start=start + 1):
+        if not line.strip():
+            continue
+        if not _ROW_START.match(line):
+            break  # the table ends ("(All distances are in millimeters.)")
+        # Every row is read: a row skipped for a NaN, a missing column or a decimal comma changed the fit silently.
+        cells = line.split()
+        try:
+            index, values = int(cells[0]), [float(cell) for cell in cells[1:]]
+        except ValueError:
+            index, values = None, []
+        if len(values) != 6 or not all(math.isfinite(v) for v in values) or index in indices:
+            raise InputError(f"{source}: line {number}: {line.strip()!r} is not a point row (an index not given "
+                             "before, then six finite numbers x y z new_x new_y new_z)")
+        indices.add(index)
+        rows.append(values)
+    table = np.asarray(rows, dtype=np.float64).reshape(-1, 6)
     from_points, to_points = table[:, :3], table[:, 3:]
-    spread = np.linalg.svd(from_points - from_points.mean(0), compute_uv=False)
-    if len(rows) < 3 or spread[1] <= 1e-6 * spread[0]:
+    if len(rows) < 3 or (spread := np.linalg.svd(from_points - from_points.mean(0), compute_uv=False))[1] <= (
+            1e-6 * spread[0]):
         raise InputError(f"{source}: its {len(rows)} points are fewer than three or collinear; a rigid transform "
                          "needs at least three points not on one line")
     return from_points, to_points
+
+
+def _check_within(points: np.ndarray, image: sitk.Image, source: str) -> None:
+    """Refuse "From" points ``(K, 3)`` (RIRE millimetres) outside the fixed image's extent, one voxel of slack.
+
+    RIRE's points are the corners of the "From" volume: past its fixed image, the file belongs to the other role (a
+    CT-to-MR file on an MR-to-CT pair gave the inverse ground truth, silently) or the image is a cropped copy.
+    """
+    spacing = np.asarray(image.GetSpacing(), dtype=np.float64)
+    extent = np.asarray(image.GetSize()) * spacing
+    outside = (points < -spacing) | (points > extent + spacing)
+    if outside.any():
+        row = int(np.flatnonzero(outside.any(1))[0])
+        raise InputError(f"{source}: its point {row + 1} ({', '.join(f'{v:g}' for v in points[row])} mm) lies "
+                         f"outside the fixed image (extent {', '.join(f'{v:g}' for v in extent)} mm): its 'From' "
+                         "volume is not this pair's fixed image (roles swapped? a cropped or resampled copy?)")
 
 
 def _rire_to_physical(points: np.ndarray, image: sitk.Image) -> np.ndarray:
