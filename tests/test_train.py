@@ -362,6 +362,19 @@ class TestTrain:
         assert rows and all(0.0 <= float(r["real_success"]) <= 1.0 for r in rows)
         assert all(float(r["real_rotation_error_deg"]) >= 0 for r in rows)
 
+    def test_each_folder_crops_its_pairs_its_own_way(self, tmp_path):
+        """With one seed for every folder, pair i of each was cropped alike at every step."""
+        from dpcn_med.train import loop
+
+        for name in ("a", "b"):
+            _write_pairs(tmp_path / name, 1)
+        real = loop._real_pairs((str(tmp_path / "a"), str(tmp_path / "b")), tiny_config(tmp_path), crop=(0.3, 0.9),
+                                seed=0)
+        for dataset in real.datasets:
+            dataset.set_epoch(3)
+        first, second = real[0]["fixed"], real[1]["fixed"]  # the same pair, in two folders
+        assert not torch.equal(first, second)
+
     def test_cli(self, tmp_path, capsys):
         (tmp_path / "tiny.yaml").write_text(TINY_YAML)
         code = main(["train", "--config", str(tmp_path / "tiny.yaml"), "--steps", "2", "--output",

@@ -110,8 +110,11 @@ def _real_pairs(roots: tuple[str, ...], config: TrainConfig, *, crop: tuple[floa
     """
     if not roots:
         return None
-    datasets = [FolderPairs(root, config.model.bandwidth, crop=crop, seed=seed,
-                            preprocessing=config.model.grid_preprocessing()) for root in roots]
+    # A seed per folder: ConcatDataset hands each its own indices, so with one seed pair i of every folder was cropped
+    # alike at every step.
+    datasets = [FolderPairs(root, config.model.bandwidth, crop=crop,
+                            seed=int(np.random.SeedSequence([seed, position]).generate_state(1)[0]),
+                            preprocessing=config.model.grid_preprocessing()) for position, root in enumerate(roots)]
     for dataset in datasets:
         for index in range(len(dataset)):
             dataset.grids(index)
