@@ -65,6 +65,26 @@ def brightest_tissue_level(image: sitk.Image) -> float:
     return float(max(otsu.GetThresholds()))
 
 
+def before_after_surfaces(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform
+                          ) -> tuple[pyvista.PolyData, pyvista.PolyData, pyvista.PolyData]:
+    """The surfaces :func:`before_after` draws, in LPS mm: ``(fixed, before, after)``.
+
+    Args:
+        fixed, moving: the registered volumes.
+        fixed_to_moving: the registration, fixed to moving (LPS mm).
+
+    Returns:
+        The fixed foreground's outline (:func:`surface`); the moving image's brightest tissue
+        (:func:`brightest_tissue_level`) as stored; and that surface with its points moved through the inverse of
+        ``fixed_to_moving``, onto the fixed image where the registration is right.
+    """
+    fixed_surface, moving_surface = surface(fixed), surface(moving, brightest_tissue_level(moving))
+    after = moving_surface.copy()
+    inverse = np.linalg.inv(homogeneous_matrix(fixed_to_moving))
+    after.points = after.points @ inverse[:3, :3].T + inverse[:3, 3]
+    return fixed_surface, moving_surface, after
+
+
 def before_after(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform, path: str | os.PathLike,
                  *, title: str = "", window_size: tuple[int, int] = (1400, 700)) -> None:
     """Write a PNG of the two volumes, before (the moving image as stored) and after (through ``fixed_to_moving``):
@@ -83,10 +103,7 @@ def before_after(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Tr
     if Path(path).suffix.lower() != ".png":
         raise InputError(f"render path {path} must end in .png")
     pv = _pyvista()
-    fixed_surface, moving_surface = surface(fixed), surface(moving, brightest_tissue_level(moving))
-    after = moving_surface.copy()
-    inverse = np.linalg.inv(homogeneous_matrix(fixed_to_moving))
-    after.points = after.points @ inverse[:3, :3].T + inverse[:3, 3]
+    fixed_surface, moving_surface, after = before_after_surfaces(fixed, moving, fixed_to_moving)
     plotter = pv.Plotter(shape=(1, 2), off_screen=True, window_size=list(window_size), border=False)
     for column, (moved, label) in enumerate(((moving_surface, "before: moving as stored"),
                                              (after, "after: moving through the registration"))):

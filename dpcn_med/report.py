@@ -143,6 +143,23 @@ def orthogonal_planes(image: sitk.Image, centre: Sequence[float], *, extent: flo
     return planes
 
 
+def overview_planes(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform, centre: Sequence[float],
+                    extent: float) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """The planes :func:`overview_figure` shows, :data:`OVERVIEW_PIXELS` a side (see :func:`orthogonal_planes`).
+
+    Returns:
+        ``(fixed, before, after)``, each ``[axial, coronal, sagittal]`` through ``centre``: the fixed image, the moving
+        image as stored, and the moving image through ``fixed_to_moving`` (which lines up with the fixed planes where
+        the registration is right). NaN outside each image's field of view: no contour runs along its edge, and it
+        shows black in every panel.
+    """
+    fixed_planes = orthogonal_planes(fixed, centre, extent=extent, pixels=OVERVIEW_PIXELS, default=math.nan)
+    before = orthogonal_planes(moving, centre, extent=extent, pixels=OVERVIEW_PIXELS, default=math.nan)
+    after = orthogonal_planes(moving, centre, extent=extent, pixels=OVERVIEW_PIXELS, transform=fixed_to_moving,
+                              default=math.nan)
+    return fixed_planes, before, after
+
+
 def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform,
                     path: str | os.PathLike[str], *, title: str = "", centre: Sequence[float] | None = None,
                     extent: float | None = None) -> None:
@@ -191,11 +208,7 @@ def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
     moving_window = _window(moving_small, foreground_mask(moving_small))
     levels = _contour_levels(moving_small)
 
-    # NaN outside each image's field of view: no contour runs along its edge, and it shows black in every panel.
-    fixed_planes = orthogonal_planes(fixed, centre, extent=extent, pixels=OVERVIEW_PIXELS, default=math.nan)
-    before = orthogonal_planes(moving, centre, extent=extent, pixels=OVERVIEW_PIXELS, default=math.nan)
-    after = orthogonal_planes(moving, centre, extent=extent, pixels=OVERVIEW_PIXELS, transform=fixed_to_moving,
-                              default=math.nan)
+    fixed_planes, before, after = overview_planes(fixed, moving, fixed_to_moving, centre, extent)
 
     columns, rows = len(PLANE_AXES), len(OVERVIEW_ROWS)
     width_in = 10.0

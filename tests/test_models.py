@@ -280,11 +280,19 @@ class TestWeights:
         from safetensors import safe_open
 
         model = DPCN(ModelConfig(**{**TINY.to_json(), "share_weights": True, "channels": (4, 8, 16)}))
+        with torch.no_grad():  # weights no fresh model has: loading, not initialisation, must give them
+            for index, parameter in enumerate(model.parameters()):
+                parameter.add_(0.3 + 0.01 * index)
         weights, _ = save_model(model, tmp_path / "mr_mr")
         with safe_open(str(weights), "pt") as stored:
             names = list(stored.keys())
         assert not any(name.startswith(("rotation_moving.", "translation_moving.")) for name in names)
-        assert load_model(tmp_path / "mr_mr.json").rotation_moving is not None
+        loaded = load_model(tmp_path / "mr_mr.json")
+        assert loaded.rotation_moving is loaded.rotation_fixed and loaded.translation_moving is loaded.translation_fixed
+        saved_state, loaded_state = model.state_dict(), loaded.state_dict()
+        assert list(loaded_state) == list(saved_state)
+        for name, tensor in saved_state.items():
+            assert torch.equal(loaded_state[name], tensor), name
 
     @pytest.mark.parametrize("suffix", [".pt", ".pth", ".ckpt"])
     def test_pickles_are_refused(self, tmp_path, suffix):

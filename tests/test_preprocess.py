@@ -278,9 +278,21 @@ class TestNormalizeModality:
         assert (out.GetOrigin(), out.GetSpacing()) == (image.GetOrigin(), image.GetSpacing())
 
     def test_mr_uses_foreground_percentiles(self):
-        image = _box_image()
-        out = sitk.GetArrayFromImage(normalize_modality(image, "mr", image > 50))
-        assert out.max() <= 1.0 and out.min() >= 0.0
+        array = sitk.GetArrayFromImage(_box_image())
+        array[8:12, 5:15, 10:30] += np.arange(0.0, 200.0, 10.0, dtype=np.float32)  # a ramp of 100..290 along x
+        array[9, 9, 12], array[10, 10, 28] = 60.0, 5000.0  # one dark voxel and one hot one (a marker)
+        image = sitk.GetImageFromArray(array)
+        image.CopyInformation(_box_image())
+        mask = image > 50
+        low, high = np.percentile(array[array > 50], Preprocessing().percentiles)
+        assert (low, high) == (100.0, 290.0)  # the two outliers do not set the range
+        out = sitk.GetArrayFromImage(normalize_modality(image, "mr", mask))
+        assert out[10, 10, 10] == 0.0 and out[10, 10, 29] == 1.0  # the 1st and 99th percentiles
+        assert out[9, 9, 12] == 0.0 and out[10, 10, 28] == 1.0  # clipped below the 1st, above the 99th percentile
+        assert out[10, 10, 14] == pytest.approx((140.0 - low) / (high - low), rel=1e-6)  # inside the range
+        np.testing.assert_array_equal(out, sitk.GetArrayFromImage(normalize_intensity(image, (1, 99), mask)))
+        window = sitk.GetArrayFromImage(normalize_modality(image, "ct", mask))
+        assert abs(window[10, 10, 14] - out[10, 10, 14]) > 0.1  # not the Hounsfield window
 
     def test_unknown_modality(self):
         with pytest.raises(InputError, match="modality 'pet' is not supported"):

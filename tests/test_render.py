@@ -54,6 +54,21 @@ def test_before_and_after_panels(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["render.png"]  # written atomically, nothing left over
 
 
+def test_the_after_surface_lies_on_the_fixed_ball():
+    fixed = oblique_ball()
+    truth = random_similarity(np.random.default_rng(0), CENTRE, max_shift_mm=30.0)
+    fixed_surface, before, after = render.before_after_surfaces(fixed, moved_copy(fixed, truth), truth)
+    assert abs(np.median(np.linalg.norm(fixed_surface.points - CENTRE, axis=1)) - RADIUS) < 1.0
+    moving_to_fixed = truth.GetInverse()
+    expected = [moving_to_fixed.TransformPoint(point) for point in before.points.astype(float)]
+    np.testing.assert_allclose(after.points, expected, atol=1e-6)
+    # The brightest level of a two-valued ball lies just above its background: the blurred surface is a shell a few
+    # mm outside the edge, centred on the ball.
+    assert np.linalg.norm(after.points.mean(axis=0) - CENTRE) < 0.5
+    assert np.abs(np.linalg.norm(after.points - CENTRE, axis=1) - RADIUS).max() < 4.0
+    assert np.linalg.norm(before.points.mean(axis=0) - CENTRE) > 10.0
+    assert np.median(np.abs(np.linalg.norm(before.points - CENTRE, axis=1) - RADIUS)) > 10.0
+
 
 def test_the_brightest_level_finds_bone_beside_padding():
     """The MRI-DIR CT's -2048 HU padding outside its field of view had pulled the 'bone' level to -236 HU."""

@@ -10,7 +10,14 @@ import SimpleITK as sitk
 
 from dpcn_med.errors import InputError
 from dpcn_med.preprocess import foreground_mask
-from dpcn_med.report import _contour_levels, _window, orthogonal_planes, overview_figure
+from dpcn_med.report import (
+    OVERVIEW_PIXELS,
+    _contour_levels,
+    _window,
+    orthogonal_planes,
+    overview_figure,
+    overview_planes,
+)
 
 CENTRE = np.array([10.0, -20.0, 30.0])
 PIXELS = 64
@@ -93,6 +100,21 @@ class TestOrthogonalPlanes:
     def test_rejects_2d_image(self):
         with pytest.raises(InputError, match="image is 2-D"):
             orthogonal_planes(sitk.Image(8, 8, sitk.sitkFloat32), (0.0, 0.0), extent=10.0)
+
+
+class TestOverviewPlanes:
+    def test_after_lines_up_with_fixed_and_before_does_not(self):
+        shift = (5.0, 3.0, -4.0)
+        fixed_planes, before, after = overview_planes(_oblique_phantom(), _oblique_phantom(shift),
+                                                      sitk.TranslationTransform(3, shift), CENTRE, EXTENT)
+        for fixed_plane, before_plane, after_plane in zip(fixed_planes, before, after):
+            assert fixed_plane.shape == after_plane.shape == (OVERVIEW_PIXELS, OVERVIEW_PIXELS)
+            both = np.isfinite(fixed_plane) & np.isfinite(after_plane)
+            assert both.mean() > 0.7 and fixed_plane[both].max() > 0.8  # the plane's marker, mostly in both views
+            # Linear interpolation of 3 mm blobs on 1.5..2.5 mm voxels, sampled at other points of the two grids.
+            np.testing.assert_allclose(after_plane[both], fixed_plane[both], atol=0.15)
+            stored = np.isfinite(fixed_plane) & np.isfinite(before_plane)
+            assert np.abs(before_plane - fixed_plane)[stored].max() > 0.6  # 7 mm apart as stored
 
 
 class TestOverviewFigure:

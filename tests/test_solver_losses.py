@@ -153,12 +153,16 @@ class TestPoseLoss:
 
 class TestTemperatures:
     def test_positive_initialised_and_learnable(self):
-        module = Temperatures(StageTemperatures(rotation=0.03, scale=0.5, translation=2.0))
+        initial = {"rotation": 0.03, "scale": 0.5, "translation": 2.0}
+        weights = {"rotation": 1.0, "scale": 2.0, "translation": 3.0}  # one per stage: each gradient is told apart
+        module = Temperatures(StageTemperatures(**initial))
         values = module()
-        assert values.rotation.item() == pytest.approx(0.03, rel=1e-5)
-        assert values.translation.item() == pytest.approx(2.0, rel=1e-5)
-        (values.rotation + values.scale + values.translation).backward()
-        assert all(parameter.grad is not None for parameter in module.parameters())
+        for name, value in initial.items():
+            assert getattr(values, name).item() == pytest.approx(value, rel=1e-5), name
+        sum(weight * getattr(values, name) for name, weight in weights.items()).backward()
+        for name, value in initial.items():
+            # d softplus(raw) / d raw = sigmoid(raw) = 1 - exp(-softplus(raw))
+            assert module.raw[name].grad.item() == pytest.approx(weights[name] * -math.expm1(-value), rel=1e-5), name
         with torch.no_grad():
             for parameter in module.parameters():
                 parameter.fill_(-50.0)
