@@ -55,7 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     config = load_config(args.config)
     device = torch.device(args.device)
     bandwidth, mode = config.model.bandwidth, config.data.pair.mode
-    bank = volume_bank(config.data.validation_volumes, 2 * bandwidth, device=device)
+    # Prepared as in training (the config's grid preprocessing), as register prepares a model's inputs.
+    bank = volume_bank(config.data.validation_volumes, 2 * bandwidth, config.model.grid_preprocessing(),
+                       device=device)
     pairs = validation_set(bank, args.pairs, args.seed, config.data.pair)
     lines = ["| model | pairs | success (< 5 deg and < 2 voxels) | median rotation error (deg) | "
              "median translation error (voxels) | 90th percentile rotation error (deg) |",

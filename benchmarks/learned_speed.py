@@ -58,6 +58,8 @@ def measure(device: torch.device, bandwidth: int, batches: list[int], steps: int
             row["training"][batch] = batch / statistics.median(seconds)
         except torch.OutOfMemoryError:
             row["training"][batch] = None
+        if row["training"][batch] is None:  # out here: inside the except, its traceback still holds the step's tensors
+            optimiser.zero_grad(set_to_none=True)
             torch.cuda.empty_cache()
     model.eval()
     fixed, moving, _ = synthetic_pairs(base, generator, PairConfig())

@@ -33,10 +33,12 @@ DEFAULT_BANDWIDTHS = {"cpu": [32, 64], "cuda": [64, 128]}
 def _elapsed(function, device: torch.device) -> float:
     """Seconds for one call, with CUDA events on the GPU."""
     if device.type == "cuda":
+        # On the device's own stream: record() alone takes the current device's, cuda:0's idle one for cuda:1.
+        stream = torch.cuda.current_stream(device)
         start, stop = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
+        start.record(stream)
         function()
-        stop.record()
+        stop.record(stream)
         torch.cuda.synchronize(device)
         return start.elapsed_time(stop) / 1000.0
     began = time.perf_counter()

@@ -203,7 +203,8 @@ def project_to_rotation(matrix: Tensor, iterations: int = 12) -> Tensor:
     """
     x = matrix
     for _ in range(iterations):
-        x = 0.5 * (x + torch.linalg.inv(x).transpose(-1, -2))
+        # inv_ex, not inv: inv checks for singular input, a host sync on CUDA at each of the iterations.
+        x = 0.5 * (x + torch.linalg.inv_ex(x).inverse.transpose(-1, -2))
     return x
 
 

@@ -187,7 +187,8 @@ def pose_loss(result: SolveResult, target: PoseTarget, weights: LossWeights | No
         "rotation_l1": geodesic_distance(result.rotation, target.rotation.to(result.rotation.dtype)),
     }
     linear = (result.scale[:, None, None] * result.rotation if compensation is None else compensation).detach()
-    true_shift = torch.linalg.solve(linear, target.translation[..., None].to(linear.dtype))[..., 0]
+    # solve_ex: solve's check for singular input is a host sync on CUDA at every training step.
+    true_shift = torch.linalg.solve_ex(linear, target.translation[..., None].to(linear.dtype)).result[..., 0]
     estimate = result.translation_estimate if translation is None else translation
     terms["translation_kl"] = shift_kl(estimate.peak.log_prob, true_shift, weights.shift_sigma)
     terms["translation_l1"] = (estimate.shift - true_shift).abs().sum(-1)

@@ -25,7 +25,7 @@ def check_volumes(name: str, volumes: Tensor, *, cubic: bool = False) -> int:
     if min(volumes.shape[2:]) < MIN_SIZE:
         raise InputError(f"{name} has spatial shape {tuple(volumes.shape[2:])}; expected at least {MIN_SIZE} voxels "
                          "along each axis")
-    # Half precision is refused too: the poses' matrix inverse (torch.linalg.inv) has no float16 or bfloat16 kernel.
+    # Half precision is refused too: the poses' matrix inverse (torch.linalg.inv_ex) has no float16 or bfloat16 kernel.
     if volumes.dtype not in (torch.float32, torch.float64):
         raise InputError(f"{name} has dtype {volumes.dtype}; expected float32 or float64 intensities in [0, 1]")
     if cubic and len(set(volumes.shape[2:])) != 1:

@@ -178,6 +178,6 @@ def synthetic_pairs(volumes: Tensor, generator: torch.Generator, config: PairCon
     fixed = _simulate(volumes, generator, fixed_modality, config.fixed_contrast, config)
     fixed = fixed * _slab_masks(volumes, generator, config)
     moving = _simulate(volumes, generator, moving_modality, config.moving_contrast, config)
-    inverse = torch.linalg.inv(target.scale[:, None, None] * target.rotation)
+    inverse = torch.linalg.inv_ex(target.scale[:, None, None] * target.rotation).inverse  # inv: a host sync on CUDA
     moving = warp(moving, inverse, -(inverse @ target.translation[..., None])[..., 0])
     return fixed, moving, target

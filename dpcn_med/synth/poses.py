@@ -35,7 +35,7 @@ class Pose:
         Returns:
             Same shape, device and dtype; content leaving the grid is lost, new content is zero.
         """
-        inverse = torch.linalg.inv(self.scale * self.rotation.to(fixed))
+        inverse = torch.linalg.inv_ex(self.scale * self.rotation.to(fixed)).inverse  # inv: a host sync on CUDA
         offset = -(inverse @ self.translation.to(fixed))
         return warp(fixed, inverse.expand(fixed.shape[0], -1, -1), offset.expand(fixed.shape[0], -1))
 
