@@ -28,8 +28,8 @@ from dpcn_med.errors import InputError
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_LOW_CONFIDENCE = 0, 1, 2, 3
 MIN_CONFIDENCE = 0.003
 """Default threshold on the solver's confidence (translation-peak mass), learning-free, B = 32. Measured: 0.0007-0.0011
-for five pairs of unrelated volumes; 1.0 for correct same-modality round trips; 0.10-0.66 for the real MRI-DIR CT to T2
-from 20 of 21 starts (all correct; one at 0.002); 0.004-0.03 for correct built-in pseudo-CT to MR poses."""
+for five pairs of unrelated volumes; 1.0 for correct same-modality round trips; 0.11-0.88 for the real MRI-DIR CT to
+T2 from 21 starts; 0.0024 for the built-in pseudo-CT to MR demo pose, correct (docs/registration.md, Confidence)."""
 
 OUTPUT_NAMES = ("transform.tfm", "transform.h5", "inverse.tfm", "inverse.h5", "moving_resampled.nii.gz",
                 "overview.png", "report.json")
@@ -48,7 +48,8 @@ def _parser() -> argparse.ArgumentParser:
     options = argparse.ArgumentParser(add_help=False)
     options.add_argument("--mode", choices=("rigid", "similarity"), default="rigid",
                          help="rigid (6 DoF, default) or similarity (7 DoF, isotropic scale)")
-    options.add_argument("--bandwidth", type=int, default=32, help="solver bandwidth B, grids are (2B)^3 (default 32)")
+    options.add_argument("--bandwidth", type=int, help="solver bandwidth B, grids are (2B)^3 (default: the model's; "
+                         "32 without one)")
     options.add_argument("--model", default="none", help="'none' (default): the learning-free solver; or a model "
                          "trained with dpcn-med train (NAME.safetensors with its NAME.json)")
     options.add_argument("--no-refine", dest="refine", action="store_false",
@@ -162,7 +163,10 @@ class _Progress:
 
 
 def _finite_float(text: str) -> float:
-    value = float(text)
+    try:
+        value = float(text)
+    except ValueError:  # argparse would say "invalid _finite_float value"
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
     return value
@@ -272,7 +276,7 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
     report = registration_report(result, fixed=fixed, moving=moving, fixed_mask=fixed_mask, moving_mask=moving_mask,
                                  min_confidence=args.min_confidence, outputs=list(outputs))
     report["timings_s"] = {**report["timings_s"], "total": time.perf_counter() - started}  # not result.timings
-    report["request"] = _request(fixed, moving, fixed_mask, moving_mask, args)
+    report["request"] = _request(fixed, moving, fixed_mask, moving_mask, args, result.bandwidth)
 
     # Stage everything in a hidden folder inside the output folder (one file system, so the moves are renames), then
     # move it in: a failed or interrupted run leaves no partial result, nor the folders it created.
@@ -296,9 +300,12 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
                             f"overlap {result.overlap:.0%}",
                             centre=result.fixed_grid.centre)  # the fixed foreground centre, already found
         io.write_json(report, staging / "report.json")
+        earlier = _earlier_outputs(output)
         with io.interrupts_deferred():  # Ctrl-C between two renames would leave two runs' files side by side
             (output / "report.json").unlink(missing_ok=True)  # first: killed outright, the pair reads as unfinished
-            for name in set(OUTPUT_NAMES) - set(outputs):  # an earlier run's, which would read as this one's
+            # An earlier run's files this one does not write would read as this one's; a file its report does not
+            # list is not known to be a run's (the user's own overview.png), and stays.
+            for name in earlier - set(outputs):
                 (output / name).unlink(missing_ok=True)
             for name in outputs:  # report.json last: it marks the pair as finished
                 os.replace(staging / name, output / name)
@@ -313,6 +320,17 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
                 except OSError:
                     break
     return (EXIT_LOW_CONFIDENCE if low else EXIT_OK), report
+
+
+def _earlier_outputs(output: Path) -> set[str]:
+    """The files of :data:`OUTPUT_NAMES` that the report.json of an earlier run in ``output`` lists (none if there is
+    no readable one)."""
+    from dpcn_med import io
+
+    try:
+        return set(OUTPUT_NAMES) & set(io.read_json(output / "report.json")["outputs"])
+    except (InputError, KeyError, TypeError):  # none, unreadable, or not a report
+        return set()
 
 
 def written_outputs(args: argparse.Namespace) -> tuple[str, ...]:
@@ -367,15 +385,20 @@ def _read_pairs(path: Path) -> list[dict[str, str | None]]:
     rows = io.read_csv(path, {"fixed": _path_cell, "moving": _path_cell}, allowed=PAIR_COLUMNS)
     if not rows:
         raise InputError(f"{path}: no pairs (a header row with at least the columns fixed,moving, then a row a pair)")
-    pairs, seen = [], set()
+    pairs, seen = [], {}
     for index, (line, row) in enumerate(rows, start=1):
         pair_id = (row.get("id") or f"{index:03d}-{Path(row['moving']).name.split('.')[0]}").strip()
-        if (pair_id.casefold() in seen or pair_id in ("", ".", "..", "summary.csv") or any(c in pair_id for c in "/\\")
+        if pair_id.casefold() in seen:  # Sub01 and sub01 would share one folder on macOS and Windows
+            first_line, first = seen[pair_id.casefold()]
+            alike = "" if first == pair_id else f" ({first!r}: ids that differ only in case share a folder on macOS "
+            alike += "" if first == pair_id else "and Windows)"
+            raise InputError(f"{path}: line {line}: id {pair_id!r} is repeated (case aside): line {first_line} has "
+                             f"it{alike}; give every pair its own id")
+        if (pair_id in ("", ".", "..", "summary.csv") or any(c in pair_id for c in "/\\")
                 or any(ord(c) < 32 for c in pair_id) or len(pair_id.encode()) > 255):
-            raise InputError(f"{path}: line {line}: id {pair_id!r} is repeated (case aside) or not a folder name "
-                             "inside the output folder (empty, '.', '..', 'summary.csv', a slash, a control character, "
-                             "or over 255 bytes)")
-        seen.add(pair_id.casefold())  # Sub01 and sub01 would share one folder on macOS and Windows
+            raise InputError(f"{path}: line {line}: id {pair_id!r} is not a folder name inside the output folder "
+                             "(empty, '.', '..', 'summary.csv', a slash, a control character, or over 255 bytes)")
+        seen[pair_id.casefold()] = (line, pair_id)
         cells = {key: (row.get(key) or "").strip() for key in ("fixed", "moving", "fixed_mask", "moving_mask")}
         if any("\0" in value for value in cells.values()):
             raise InputError(f"{path}: line {line}: a path holds a NUL character")
@@ -385,12 +408,13 @@ def _read_pairs(path: Path) -> list[dict[str, str | None]]:
 
 
 def _request(fixed: str, moving: str, fixed_mask: str | None, moving_mask: str | None,
-             args: argparse.Namespace) -> dict:
+             args: argparse.Namespace, bandwidth: int) -> dict:
     """What a registration was asked for (report.json's ``request``): the inputs, resolved, and the options that
-    change its result. A batch rerun reuses an earlier result only if this matches."""
+    change its result (``bandwidth`` resolved: ``--bandwidth`` or the model's). A batch rerun reuses an earlier
+    result only if this matches."""
     resolved = {key: None if value is None else os.path.realpath(value) for key, value in
                 (("fixed", fixed), ("moving", moving), ("fixed_mask", fixed_mask), ("moving_mask", moving_mask))}
-    return {**resolved, "mode": args.mode, "bandwidth": args.bandwidth, "model": _model_identity(args.model),
+    return {**resolved, "mode": args.mode, "bandwidth": bandwidth, "model": _model_identity(args.model),
             "refine": args.refine, "fixed_modality": args.fixed_modality, "moving_modality": args.moving_modality}
 
 
@@ -416,22 +440,25 @@ def _model_identity(model: str) -> str | dict[str, str]:
     return identity
 
 
-def _earlier_report(folder: Path, request: dict, outputs: Sequence[str]) -> tuple[dict | None, bool]:
+def _earlier_report(folder: Path, request: dict, outputs: Sequence[str]) -> tuple[dict | None, str]:
     """The report.json a finished earlier run left in ``folder`` for this ``request`` and at least these
-    ``outputs``, and whether a report of other inputs or settings is there (the pair is then registered again, as
-    when there is none or none readable)."""
+    ``outputs``, and else why a report there is not reused ("" when there is none, or none readable; the pair is
+    then registered again)."""
     from dpcn_med import io
 
     if not (folder / "report.json").exists():
-        return None, False
+        return None, ""
     try:
         report = io.read_json(folder / "report.json")
         float(report["confidence"]), float(report["final"]["rotation_degrees"]), float(report["timings_s"]["total"])
     except (InputError, KeyError, TypeError, ValueError):
-        return None, False
-    if report.get("request") != request or not set(outputs) <= set(report.get("outputs", ())):
-        return None, True
-    return report, False
+        return None, ""
+    if report.get("request") != request:
+        return None, "replaced an earlier result of other inputs or settings"
+    missing = [name for name in outputs if name not in report.get("outputs", ())]
+    if missing:
+        return None, f"registered again: the earlier result lacks {', '.join(missing)}"
+    return report, ""
 
 
 def _register_batch(args: argparse.Namespace) -> int:
@@ -443,11 +470,12 @@ def _register_batch(args: argparse.Namespace) -> int:
     if os.path.lexists(summary) and not summary.is_file():
         raise InputError(f"{summary}: exists and is not a file; choose another output folder")
     check_output_folder(args.output)
-    check_options(mode=args.mode, model=args.model, bandwidth=args.bandwidth, device=args.device,
-                  fixed_modality=args.fixed_modality, moving_modality=args.moving_modality)
+    _, bandwidth, _, _ = check_options(mode=args.mode, model=args.model, bandwidth=args.bandwidth,
+                                       device=args.device, fixed_modality=args.fixed_modality,
+                                       moving_modality=args.moving_modality)
     outputs = written_outputs(args)
     earlier = [_earlier_report(args.output / pair["id"], _request(pair["fixed"], pair["moving"], pair["fixed_mask"],
-                                                                  pair["moving_mask"], args), outputs)
+                                                                  pair["moving_mask"], args, bandwidth), outputs)
                for pair in pairs]
     # One pair's output must not replace another's input either: the second would read the first's result.
     inputs = {str(args.pairs): "this run's pairs file"}
@@ -458,8 +486,14 @@ def _register_batch(args: argparse.Namespace) -> int:
     _refuse_overwriting_inputs(inputs, [summary, *(args.output / pair["id"] / name
                                                    for pair, (report, _) in zip(pairs, earlier) if report is None
                                                    for name in OUTPUT_NAMES)])
+    absent = [f"{pair['id']}: {pair[key]}" for pair, (report, _) in zip(pairs, earlier) if report is None
+              for key in ("fixed", "moving", "fixed_mask", "moving_mask")
+              if pair[key] is not None and not os.path.exists(_split_series_folder(pair[key]))]
+    if absent:  # those pairs fail as 'bad input' in their turn: a typo should not surface hours into a cohort
+        print(f"dpcn-med: warning: {len(absent)} path(s) of the pairs file do not exist ({'; '.join(absent[:5])}"
+              f"{'; ...' if len(absent) > 5 else ''}); those pairs will be reported as bad input", file=sys.stderr)
     rows, codes = [], []
-    for index, (pair, (report, replaced)) in enumerate(zip(pairs, earlier), start=1):
+    for index, (pair, (report, note)) in enumerate(zip(pairs, earlier), start=1):
         label = f"[{index}/{len(pairs)}] {pair['id']} "
         if report is not None:
             low = not report["confidence"] >= args.min_confidence  # NaN is never confident
@@ -469,7 +503,7 @@ def _register_batch(args: argparse.Namespace) -> int:
                          "seconds": f"{report['timings_s']['total']:.1f}", "message": ""})
             codes.append(EXIT_LOW_CONFIDENCE if low else EXIT_OK)
         else:
-            codes.append(_register_row(pair, args, label, rows, replaced))
+            codes.append(_register_row(pair, args, label, rows, note))
         _make_folder(args.output)  # after every pair: an interrupted run's summary lists what it finished
         io.write_csv(rows, summary)
     if not args.quiet:
@@ -481,9 +515,15 @@ def _register_batch(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _register_row(pair: dict, args: argparse.Namespace, label: str, rows: list[dict], replaced: bool) -> int:
-    """Register one pair of a batch, append its summary row to ``rows``, print its line; returns its exit code."""
-    note = "replaced an earlier result of other inputs or settings" if replaced else ""
+def _split_series_folder(path: str) -> str:
+    """The folder of a ``FOLDER@SERIES_UID`` path (as :func:`dpcn_med.io.read_image` splits it), else ``path``."""
+    folder, _, uid = path.rpartition("@")
+    return folder if uid and not os.path.exists(path) and os.path.isdir(folder) else path
+
+
+def _register_row(pair: dict, args: argparse.Namespace, label: str, rows: list[dict], note: str) -> int:
+    """Register one pair of a batch, append its summary row to ``rows`` (``note`` its message), print its line;
+    returns its exit code."""
     try:
         code, report = register_pair(pair["fixed"], pair["moving"], args.output / pair["id"], args,
                                      fixed_mask=pair["fixed_mask"], moving_mask=pair["moving_mask"], label=label)

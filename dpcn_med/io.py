@@ -232,6 +232,12 @@ def _read_file(name: str, filename: str, max_bytes: int | None) -> sitk.Image:
     try:
         reader.ReadImageInformation()
     except RuntimeError as error:
+        if os.path.getsize(filename) == 0:
+            raise InputError(f"{name}: is empty (0 bytes); copy or export it again") from None
+        if "Unable to determine ImageIO reader" in str(error) and filename.lower().endswith(
+                (*IMAGE_WRITE_SUFFIXES, ".nhdr", ".mhd")):  # a reader for the name, but not for the content
+            raise InputError(f"{name}: its content is in none of the formats read here ({_INPUT_FORMATS}), whatever "
+                             "its name says; export it again as one of them") from None
         raise InputError(f"{name}: not a readable image ({_sitk_reason(error)}); expected {_INPUT_FORMATS}") from None
     single_dicom = sitk.ImageFileReader.GetImageIOFromFileName(filename) == "GDCMImageIO"
     _check_shape(name, reader.GetDimension(), reader.GetSize(), reader.GetNumberOfComponents(), single_dicom)
@@ -703,11 +709,15 @@ def _check_same_grid(name: str, role: str, mask: sitk.Image, image: sitk.Image) 
         differing.append("origin")
     if same_size and not differing:
         return
-    shown = [f"size {mask.GetSize()} vs {image.GetSize()}", f"spacing {mask.GetSpacing()} vs {image.GetSpacing()}"]
+    def rounded(values: tuple[float, ...]) -> str:  # 16-digit floats made the message 700 characters long
+        return f"({', '.join(f'{v:.6g}' for v in values)})"
+
+    shown = [f"size {mask.GetSize()} vs {image.GetSize()}",
+             f"spacing {rounded(mask.GetSpacing())} vs {rounded(image.GetSpacing())}"]
     if "origin" in differing:
-        shown.append(f"origin {mask.GetOrigin()} vs {image.GetOrigin()}")
+        shown.append(f"origin {rounded(mask.GetOrigin())} vs {rounded(image.GetOrigin())}")
     if "direction" in differing:
-        shown.append(f"direction {mask.GetDirection()} vs {image.GetDirection()}")
+        shown.append(f"direction {rounded(mask.GetDirection())} vs {rounded(image.GetDirection())}")
     raise InputError(f"{name}: {role} is not on its image's voxel grid ({', '.join(shown)}, {role} vs image); "
                      "resample it onto the image with nearest-neighbour interpolation: sitk.Resample(mask, image, "
                      "sitk.Transform(), sitk.sitkNearestNeighbor)")
@@ -1020,7 +1030,9 @@ def read_csv(path: str | os.PathLike, columns: dict[str, Callable[[str], Any]], 
         raise InputError(f"{name}: column {', '.join(map(repr, repeated))} appears more than once in the header")
     missing = [column for column in columns if column not in header]
     if missing:
-        raise InputError(f"{name}: no column {', '.join(missing)} (expected {', '.join(columns)})")
+        found = f"its header row is {','.join(header)[:80]!r}" if header else "it holds no rows"
+        raise InputError(f"{name}: no column {', '.join(missing)}: {found}; expected a header row naming "
+                         f"{', '.join(columns)}, cells separated by commas")
     unknown = [field for field in header if allowed is not None and field not in {*columns, *allowed}]
     if unknown:
         raise InputError(f"{name}: unknown column {', '.join(map(repr, unknown))} (the columns are "
@@ -1122,7 +1134,22 @@ def read_text(path: str | os.PathLike, *, encoding: str = "utf-8") -> str:
         with open(name, encoding=encoding) as stream:
             return stream.read()
     except UnicodeDecodeError as error:
-        raise InputError(f"{name}: not a {encoding} text file ({error})") from None
+        kind = _binary_kind(name)
+        raise InputError(f"{name}: {f'is a {kind} file, not text' if kind else f'not a {encoding} text file ({error})'}"
+                         ) from None
+
+
+_MAGIC = {b"\x1f\x8b": "gzip-compressed (.gz)", b"PK\x03\x04": "zip", b"\x89HDF": "HDF5",
+          b"\x89PNG": "PNG image"}
+"""Leading bytes of binary files a text reader may be handed by mistake (a .nii.gz for a pairs file)."""
+
+
+def _binary_kind(name: str) -> str | None:
+    """What ``name`` is when its first bytes say so (:data:`_MAGIC`), else ``None``."""
+    with contextlib.suppress(OSError), open(name, "rb") as stream:
+        start = stream.read(8)
+        return next((kind for magic, kind in _MAGIC.items() if start.startswith(magic)), None)
+    return None
 
 
 def _existing_file(path: str | os.PathLike) -> str:

@@ -212,25 +212,34 @@ class RegistrationResult:
         }
 
 
-def check_options(*, mode: str, model: str | os.PathLike | None, bandwidth: int, device: str | torch.device,
+DEFAULT_BANDWIDTH = 32
+"""The learning-free solver's bandwidth when none is given: fast on a CPU."""
+
+
+def check_options(*, mode: str, model: str | os.PathLike | None, bandwidth: int | None, device: str | torch.device,
                   fixed_modality: str, moving_modality: str
                   ) -> tuple[str, int, torch.device, DPCN | None]:
     """:func:`register`'s options checked before any work (a batch checks them once, not at every pair).
 
     Returns:
-        ``(mode, bandwidth, device, network)``: the device resolved, the model loaded (``None``: learning-free).
+        ``(mode, bandwidth, device, network)``: the bandwidth and device resolved (``None``: the model's, else
+        :data:`DEFAULT_BANDWIDTH`), the model loaded (``None``: learning-free).
 
     Raises:
         InputError: an unknown mode, modality or device, a bandwidth out of range (the grids will be ``(2B)^3``), or
             a model that cannot be used at this bandwidth.
     """
     mode = check_mode(mode)
-    bandwidth = check_grid_bandwidth(check_integer("bandwidth", bandwidth))
+    if bandwidth is not None:
+        bandwidth = check_grid_bandwidth(check_integer("bandwidth", bandwidth))
     for name, value in (("fixed_modality", fixed_modality), ("moving_modality", moving_modality)):
         if value not in MODALITIES:
             raise InputError(f"{name} {value!r} is not supported; use one of {', '.join(MODALITIES)}")
     torch_device = resolve_device(device)
-    return mode, bandwidth, torch_device, load_feature_model(model, bandwidth, torch_device)
+    network = load_feature_model(model, bandwidth, torch_device)
+    if bandwidth is None:
+        bandwidth = DEFAULT_BANDWIDTH if network is None else network.config.bandwidth
+    return mode, bandwidth, torch_device, network
 
 
 def describe_transform(fixed_to_moving: sitk.Transform) -> dict:
@@ -348,14 +357,14 @@ LEARNING_FREE = ("none", "learning-free")
 """Names of the learning-free solver for ``model`` (as is ``None``)."""
 
 
-def load_feature_model(model: str | os.PathLike | None, bandwidth: int, device: torch.device):
+def load_feature_model(model: str | os.PathLike | None, bandwidth: int | None, device: torch.device):
     """The learned model named by ``model`` (a path to ``NAME.safetensors`` / ``NAME.json`` / ``NAME``) on
     ``device``, or ``None`` for the learning-free solver.
 
     Raises:
         InputNotFoundError: the model's files are missing.
         InputError: not a path (or ``None``), an empty one, not a dpcn_med model, or trained at another bandwidth
-            than ``bandwidth``.
+            than ``bandwidth`` (any when ``None``).
     """
     if model is None:
         return None
@@ -367,14 +376,14 @@ def load_feature_model(model: str | os.PathLike | None, bandwidth: int, device: 
     from dpcn_med.models import load_model
 
     network = load_model(model, device=device)
-    if network.config.bandwidth != bandwidth:
+    if bandwidth is not None and network.config.bandwidth != bandwidth:
         raise InputError(f"{model}: this model was trained at bandwidth {network.config.bandwidth}; register with "
                          f"bandwidth={network.config.bandwidth} (--bandwidth {network.config.bandwidth})")
     return network
 
 
 def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model: str | os.PathLike | None = None,
-             bandwidth: int = 32, refine: bool = True, device: str = "auto",
+             bandwidth: int | None = None, refine: bool = True, device: str = "auto",
              fixed_mask: ImageLike | None = None, moving_mask: ImageLike | None = None,
              fixed_modality: str = "auto", moving_modality: str = "auto", resample: bool = False,
              preprocessing: Preprocessing | None = None, refinement: Refinement | None = None,
@@ -388,7 +397,8 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         mode: ``"rigid"`` (6 DoF) or ``"similarity"`` (7 DoF, isotropic scale).
         model: ``None`` (or ``"none"``) for the learning-free solver, or the path of a model trained with
             ``dpcn-med train`` (its learned features replace the intensities; its bandwidth must be ``bandwidth``).
-        bandwidth: solver bandwidth ``B``; grids are ``(2B)^3`` (32: fast on a CPU; 64: finer before refinement).
+        bandwidth: solver bandwidth ``B``; grids are ``(2B)^3`` (32: fast on a CPU; 64: finer before refinement);
+            ``None``: the model's, else :data:`DEFAULT_BANDWIDTH`.
         refine: polish the global estimate with multi-resolution Mattes mutual information.
         device: ``"auto"``, ``"cpu"``, ``"cuda"`` or ``"cuda:N"`` for the solver.
         fixed_mask: binary mask on the fixed image's grid: only it is registered (also restricts the refinement).

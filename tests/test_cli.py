@@ -61,6 +61,17 @@ class TestRegister:
         assert report["outputs"] == written and report["final"] == earlier
         assert f"outputs in {output}/: {', '.join(written)}" in capsys.readouterr().out
 
+    def test_a_file_of_yours_that_no_run_listed_stays(self, pair, tmp_path):
+        """overview.png and moving_resampled.nii.gz of the user's own, in the output folder, were deleted."""
+        output = tmp_path / "out"
+        output.mkdir()
+        (output / "overview.png").write_text("my figure")
+        shutil.copy(pair[1], output / "moving_resampled.nii.gz")
+        assert main(["register", str(pair[0]), str(pair[1]), "-o", str(output), "--no-refine", "--no-overview",
+                     "--no-resampled", "-q"]) == 0
+        assert (output / "overview.png").read_text() == "my figure"
+        assert (output / "moving_resampled.nii.gz").read_bytes() == pair[1].read_bytes()
+
     def test_transform_files_recover_the_truth(self, registered, pair):
         output, _ = registered
         corners = foreground_corners(mni_2mm())
@@ -187,7 +198,7 @@ def _huge(path: Path) -> None:
 
 BAD_INPUTS = {
     "missing": (None, "moving.nii.gz", "not found|does not exist|no such"),
-    "garbage": (_garbage, "moving.nii.gz", "not a readable|cannot read|unreadable|could not"),
+    "garbage": (_garbage, "moving.nii.gz", "in none of the formats read here"),
     "truncated": (_truncated, "moving.nii.gz", "truncated"),
     "truncated_header": (_truncated_header, "moving.nii.gz", "truncated"),
     "sheared": (_sheared, "moving.nrrd", "not orthonormal"),
@@ -287,10 +298,12 @@ class TestBadInput:
         assert caught.value.code == 2 and "an empty output folder" in capsys.readouterr().err
         assert list(tmp_path.iterdir()) == []
 
-    def test_min_confidence_must_be_finite(self, pair, tmp_path, capsys):
+    @pytest.mark.parametrize("value,message", [("nan", "'nan' is not a finite number"),
+                                               ("high", "'high' is not a number")])  # was "invalid _finite_float"
+    def test_min_confidence_must_be_finite(self, pair, tmp_path, capsys, value, message):
         with pytest.raises(SystemExit) as caught:
-            main(["register", str(pair[0]), str(pair[1]), "--min-confidence", "nan", "-o", str(tmp_path / "o")])
-        assert caught.value.code == 2 and "'nan' is not a finite number" in capsys.readouterr().err
+            main(["register", str(pair[0]), str(pair[1]), "--min-confidence", value, "-o", str(tmp_path / "o")])
+        assert caught.value.code == 2 and message in capsys.readouterr().err
 
     def test_missing_model_file(self, pair, tmp_path, capsys):
         code = main(["register", str(pair[0]), str(pair[1]), "--model", str(tmp_path / "ct_mr"), "-o",
@@ -456,6 +469,10 @@ class TestBatch:
         table.write_text(f"id,fixed,moving\ngood,{pair[0]},{pair[1]}\nbroken,{pair[0]},missing.nii.gz\n")
         output = tmp_path / "cohort"
         assert main(["register-batch", str(table), "-o", str(output), "--no-refine"]) == 2
+        # said before the first pair, not only in its turn
+        err = capsys.readouterr().err
+        assert err.index(f"1 path(s) of the pairs file do not exist (broken: {tmp_path / 'missing.nii.gz'})") < (
+            err.index("[2/2] broken bad input"))
         rows = list(csv.DictReader((output / "summary.csv").open()))
         assert [r["status"] for r in rows] == ["ok", "bad input"] and "missing.nii.gz" in rows[1]["message"]
         assert (output / "good" / "report.json").is_file() and not (output / "broken").exists()
@@ -489,6 +506,9 @@ class TestBatch:
         out = capsys.readouterr().out
         assert out.count("replaced an earlier result of other inputs or settings") == 2
         assert out.count("done earlier") == 1
+        # With the overview asked for, the same inputs and settings: registered again, and not said to differ.
+        main(["register-batch", str(table), "-o", str(output), "--no-refine", "--mode", "similarity"])
+        assert "registered again: the earlier result lacks overview.png" in capsys.readouterr().out
 
     def test_one_pairs_output_never_replaces_another_pairs_input(self, pair, tmp_path, capsys):
         """Pair b reads a file where pair a would write its resampled volume: before, b registered a's output (or,
@@ -557,7 +577,8 @@ class TestBatch:
         table.write_text(f"id,fixed,moving\nbroken,{pair[0]},missing.nii.gz\n")
         assert main(["register-batch", str(table), "-o", str(tmp_path / "cohort"), "-q"]) == 2
         out, err = capsys.readouterr()
-        assert out == "" and re.fullmatch(r"\[1/1\] broken bad input \S*missing\.nii\.gz: not found.*\n", err)
+        assert out == "" and re.fullmatch(r"dpcn-med: warning: 1 path\(s\) of the pairs file do not exist .*\n"
+                                          r"\[1/1\] broken bad input \S*missing\.nii\.gz: not found.*\n", err)
 
     def test_the_pairs_file_is_never_the_summary(self, pair, tmp_path, capsys):
         (tmp_path / "cohort").mkdir()
@@ -601,13 +622,15 @@ class TestBatch:
         ("fixed,moving\n", r"pairs\.csv: no pairs"),
         ("id,fixed,moving\nfirst,a.nii\n", r"pairs\.csv: line 2: a fixed or moving path is missing"),
         ("fixed,moving\na.nii,b.nii\n , c.nii\n", r"pairs\.csv: line 3: a fixed or moving path is missing"),
-        ("id,fixed,moving\nx,a.nii,b.nii\nx,c.nii,d.nii\n", r"pairs\.csv: line 3: id 'x' is repeated"),
-        ("id,fixed,moving\nSub01,a.nii,b.nii\nsub01,c.nii,d.nii\n", r"line 3: id 'sub01' is repeated \(case aside\)"),
+        ("id,fixed,moving\nx,a.nii,b.nii\nx,c.nii,d.nii\n", r"pairs\.csv: line 3: id 'x' is repeated \(case aside\): "
+                                                          r"line 2 has it; give every pair its own id$"),
+        ("id,fixed,moving\nSub01,a.nii,b.nii\nsub01,c.nii,d.nii\n", r"line 3: id 'sub01' is repeated \(case aside\): "
+         r"line 2 has it \('Sub01': ids that differ only in case share a folder on macOS and Windows\)"),
         # a spreadsheet's byte-order mark and spaces in the header are read through
-        ("\ufeffid, fixed, moving\n..,a.nii,b.nii\n", r"pairs\.csv: line 2: id '\.\.' is repeated"),
-        ("id,fixed,moving\nsummary.csv,a.nii,b.nii\n", r"line 2: id 'summary\.csv' is repeated"),
-        ('id,fixed,moving\n"a\nb",a.nii,b.nii\n', r"line 3: id 'a\\nb' is repeated"),
-        (f"id,fixed,moving\n{'x' * 256},a.nii,b.nii\n", r"line 2: id 'x{256}' is repeated"),
+        ("\ufeffid, fixed, moving\n..,a.nii,b.nii\n", r"pairs\.csv: line 2: id '\.\.' is not a folder name"),
+        ("id,fixed,moving\nsummary.csv,a.nii,b.nii\n", r"line 2: id 'summary\.csv' is not a folder name"),
+        ('id,fixed,moving\n"a\nb",a.nii,b.nii\n', r"line 3: id 'a\\nb' is not a folder name"),
+        (f"id,fixed,moving\n{'x' * 256},a.nii,b.nii\n", r"line 2: id 'x{256}' is not a folder name"),
         ("\n\nfixed,moving\n\na.nii,b.nii\n,c.nii\n", r"pairs\.csv: line 6: a fixed or moving path is missing"),
         ("id,fixed,moving\nx,a\0.nii,b.nii\n", r"pairs\.csv: line 2: a path holds a NUL character"),
         ("id,fixed,moving,moving\nx,a.nii,b.nii,c.nii\n", r"pairs\.csv: column 'moving' appears more than once"),

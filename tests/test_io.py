@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import os
@@ -117,7 +118,11 @@ class TestReadImage:
     def test_garbage_bytes(self, tmp_path):
         path = tmp_path / "garbage.nii.gz"
         path.write_bytes(os.urandom(3000))
-        with pytest.raises(InputError, match=r"garbage\.nii\.gz: not a readable image \(Unable to determine"):
+        with pytest.raises(InputError, match=r"garbage\.nii\.gz: its content is in none of the formats read here "
+                                             r"\(NIfTI .*\), whatever its name says"):
+            io.read_image(path)
+        path.write_bytes(b"")
+        with pytest.raises(InputError, match=r"garbage\.nii\.gz: is empty \(0 bytes\); copy or export it again$"):
             io.read_image(path)
 
     def test_unsupported_format(self, tmp_path):
@@ -482,9 +487,21 @@ class TestReadMask:
         path = tmp_path / "m.nrrd"
         sitk.WriteImage(other, str(path))
         with pytest.raises(InputError, match=r"m\.nrrd: fixed mask is not on its image's voxel grid \(size \(20, 24, "
-                                             r"30\) vs \(20, 24, 28\), spacing \(1\.0, 1\.0, 2\.0\) vs \(0\.75, 1\.25, "
+                                             r"30\) vs \(20, 24, 28\), spacing \(1, 1, 2\) vs \(0\.75, 1\.25, "
                                              r"2\.5\), origin .*sitkNearestNeighbor"):
             io.read_mask(path, volume, role="fixed mask")
+
+    def test_a_mismatch_shows_rounded_numbers(self, volume, tmp_path):
+        """Sixteen-digit floats made the message about 700 characters long."""
+        other = sitk.Image(20, 24, 28, sitk.sitkUInt8)
+        other.SetSpacing((0.1 + 0.2, 1.0 / 3.0, 2.0))
+        other.SetOrigin((1.0 / 7.0, 2.0, 3.0))
+        other[3, 3, 3] = 1
+        sitk.WriteImage(other, str(tmp_path / "m.nrrd"))
+        with pytest.raises(InputError, match=r"spacing \(0\.3, 0\.333333, 2\) vs \(0\.75, 1\.25, 2\.5\), origin "
+                                             r"\(0\.142857, 2, 3\) vs") as caught:
+            io.read_mask(tmp_path / "m.nrrd", volume, role="fixed mask")
+        assert len(str(caught.value)) < len(str(tmp_path)) + 500
 
     def test_direction_mismatch(self, volume, tmp_path):
         array = np.zeros(SIZE[::-1], np.uint8)
@@ -1090,6 +1107,9 @@ class TestReadText:
         with pytest.raises(InputError, match=r"b\.txt: not a utf-8 text file"):
             io.read_text(tmp_path / "b.txt")
         assert io.read_text(tmp_path / "b.txt", encoding="latin-1") == "\xff\xfe\x00"
+        (tmp_path / "pairs.csv").write_bytes(gzip.compress(b"\x00\xff" * 100))  # a .nii.gz given for the pairs file
+        with pytest.raises(InputError, match=r"^\S*pairs\.csv: is a gzip-compressed \(\.gz\) file, not text$"):
+            io.read_text(tmp_path / "pairs.csv")
         with pytest.raises(InputNotFoundError, match=r"c\.txt: not found"):
             io.read_text(tmp_path / "c.txt")
 
@@ -1114,8 +1134,13 @@ class TestCsv:
         io.write_csv(rows, tmp_path / "rows.csv")
         assert io.read_csv(tmp_path / "rows.csv", {"trial": int, "tre_mm": float}) == list(zip([2, 3], rows))
         assert io.read_csv(tmp_path / "rows.csv", {"tre_mm": float})[1][1]["trial"] == "1"  # other columns: strings
-        with pytest.raises(InputError, match=r"rows\.csv: no column seconds, method \(expected trial, seconds, "):
+        with pytest.raises(InputError, match=r"rows\.csv: no column seconds, method: its header row is 'id,trial,"
+                                             r"tre_mm'; expected a header row naming trial, seconds, method"):
             io.read_csv(tmp_path / "rows.csv", {"trial": int, "seconds": float, "method": str})
+        (tmp_path / "semicolons.csv").write_text("fixed;moving\na.nii;b.nii\n")  # a spreadsheet's other separator
+        with pytest.raises(InputError, match=r"no column fixed, moving: its header row is 'fixed;moving'; expected a "
+                                             r"header row naming fixed, moving, cells separated by commas$"):
+            io.read_csv(tmp_path / "semicolons.csv", {"fixed": str, "moving": str})
         (tmp_path / "bad.csv").write_text("id,trial\na,0\nb,one\n")
         with pytest.raises(InputError, match=r"bad\.csv: line 3: invalid literal for int"):
             io.read_csv(tmp_path / "bad.csv", {"trial": int})

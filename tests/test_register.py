@@ -543,6 +543,9 @@ class TestErrors:
         save_model(DPCN(ModelConfig(bandwidth=16, channels=(4, 8))), tmp_path / "b16")
         with pytest.raises(InputError, match="trained at bandwidth 16; register with bandwidth=16"):
             register(mni_2mm(), mni_2mm(), model=tmp_path / "b16", bandwidth=32)
+        # Unless named, the bandwidth is the model's (it was 32, refused), and the learning-free default 32.
+        assert register(mni_2mm(), mni_2mm(), model=tmp_path / "b16", refine=False).bandwidth == 16
+        assert register(mni_2mm(), mni_2mm(), refine=False).bandwidth == 32
 
     @pytest.mark.parametrize("bandwidth", [0, 3, 7, 129])  # 4-7 made grids under 16^3, refused after preprocessing
     def test_bandwidth_out_of_range(self, bandwidth):

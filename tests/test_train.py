@@ -350,14 +350,38 @@ class TestTrain:
         with pytest.raises(InputError, match=r"^training: 3 steps in a row gave non-finite gradients \(at step 3\)"):
             train(tiny_config(tmp_path))
 
-    def test_real_pairs_from_folders_train_and_validate(self, tmp_path):
+    def test_real_pairs_from_folders_train_and_validate(self, tmp_path, monkeypatch):
         """Folders of registered pairs (.tfm ground truth) feed every step here and are scored at validation."""
+        from dpcn_med.models import DPCN
+        from dpcn_med.train.folders import FolderPairs
+
         _write_pairs(tmp_path / "pairs", 2)
         config = tiny_config(tmp_path)
         config = replace(config, data=replace(config.data, folders=(str(tmp_path / "pairs"),), folder_fraction=1.0,
                                               validation_folders=(str(tmp_path / "pairs"),)),
                          optimiser=replace(config.optimiser, steps=2))
+        forward, batches = DPCN.forward, []
+
+        def recorded(model, fixed, moving, target=None, **options):
+            if model.training:
+                batches.append((fixed, moving, target))
+            return forward(model, fixed, moving, target, **options)
+
+        monkeypatch.setattr(DPCN, "forward", recorded)
         train(config)
+        pairs = FolderPairs(tmp_path / "pairs", config.model.bandwidth,
+                            preprocessing=config.model.grid_preprocessing())
+        grids = [pairs.grids(index) for index in range(len(pairs))]
+        assert len(batches) == 2
+        for fixed, moving, target in batches:
+            assert len(moving) == config.optimiser.batch_size
+            for item in range(len(moving)):
+                pair = next((p for p in grids if torch.equal(moving[item], p.moving)), None)
+                assert pair is not None, "a training pair that is not from the folder"
+                assert torch.equal(target.rotation[item], pair.target.rotation[0])
+                assert torch.equal(target.translation[item], pair.target.translation[0])
+                kept = fixed[item] != 0  # a random slab of the fixed grid is kept (data.folder_crop), the rest is 0
+                assert kept.any() and torch.equal(fixed[item][kept], pair.fixed[kept])
         rows = [r for r in log_rows(Path(config.output)) if r["kind"] == "validation"]
         assert rows and all(0.0 <= float(r["real_success"]) <= 1.0 for r in rows)
         assert all(float(r["real_rotation_error_deg"]) >= 0 for r in rows)
@@ -451,6 +475,15 @@ def _damage_tensors(run: Path, drop: bool) -> None:
 
 
 class TestResume:
+    def test_a_checkpoint_given_as_a_model_names_the_model(self, checkpointed):
+        from dpcn_med.models import load_model
+
+        run = checkpointed / "run"
+        model = re.escape(str(run / "model.safetensors"))
+        with pytest.raises(InputError, match=rf"checkpoint\.json: not a dpcn_med model config .*: a training "
+                                             rf"checkpoint; the trained model is {model}$"):
+            load_model(run / "checkpoint")
+
     def test_a_signal_while_saving_waits_for_the_pair(self):
         """SIGTERM (or Ctrl-C) between the two files of a checkpoint would leave new weights beside an old step."""
         written, before = [], signal.getsignal(signal.SIGTERM)
@@ -553,6 +586,17 @@ class TestDistributed:
         assert ranks[0]["rotation_fixed.gain"].abs() > 0  # trained: the gains start at exactly 0
         record = json.loads((tmp_path / "run" / "model.json").read_text())["record"]
         assert record["processes"] == 2 and record["pairs_seen"] == 2 * 4 * 2
+
+    def test_one_named_gpu_for_every_process_is_refused(self, monkeypatch):
+        """device cuda:1 under torchrun put every rank on one GPU, where NCCL fails ('Duplicate GPU')."""
+        from dpcn_med.train import distributed
+
+        # No GPU here: the device resolves as it would on a machine with two.
+        monkeypatch.setattr(distributed, "resolve_device", lambda device: torch.device(device))
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        with pytest.raises(InputError, match=r"^device 'cuda:1' names one GPU for all 2 processes of torchrun; use "
+                                             r"'cuda' \(each process takes cuda:LOCAL_RANK\) or 'auto'$"):
+            distributed.start("cuda:1")
 
 
 class TestShippedConfigs:

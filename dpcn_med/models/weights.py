@@ -100,7 +100,10 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
                                  f"exists in {weights.parent}); check the path")
     description = io.read_json(config)
     if not isinstance(description, dict) or description.get("format") != FORMAT:
-        raise InputError(f"{config}: not a dpcn_med model config (format {FORMAT!r} expected)")
+        # A training checkpoint (checkpoint.json: step, optimiser state) sits beside the model a run writes.
+        hint = (f": a training checkpoint; the trained model is {config.with_name('model.safetensors')}"
+                if isinstance(description, dict) and {"step", "param_groups"} <= description.keys() else "")
+        raise InputError(f"{config}: not a dpcn_med model config (format {FORMAT!r} expected){hint}")
     if "config" not in description:
         raise InputError(f"{config}: lacks the 'config' key (the model's settings); save the model again")
     settings = description["config"]

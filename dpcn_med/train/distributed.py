@@ -38,13 +38,17 @@ def start(device: str = "auto") -> Process:
     ``cuda:LOCAL_RANK``; ``cpu`` and ``cuda:N`` are taken as they are.
 
     Raises:
-        InputError: an unknown device, or a CUDA device this machine does not have (before anything else is done).
+        InputError: an unknown device, a CUDA device this machine does not have, or ``cuda:N`` for several processes
+            (before anything else is done).
     """
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     rank, local_rank = int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0"))
     chosen = resolve_device(device)
     use_cuda = chosen.type == "cuda"
     if use_cuda:
+        if chosen.index is not None and world_size > 1:  # every process on one GPU: NCCL fails, "Duplicate GPU"
+            raise InputError(f"device {device!r} names one GPU for all {world_size} processes of torchrun; use "
+                             "'cuda' (each process takes cuda:LOCAL_RANK) or 'auto'")
         if chosen.index is None:
             chosen = torch.device(f"cuda:{local_rank}")
         if chosen.index >= torch.cuda.device_count():
