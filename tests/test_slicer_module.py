@@ -330,7 +330,7 @@ class TestTransforms:
 
 class TestProcess:
     def test_options_become_dpcn_med_arguments(self):
-        assert Options().arguments() == ["--mode", "rigid", "--bandwidth", "32", "--device", "auto"]
+        assert Options().arguments() == ["--mode", "rigid", "--device", "auto"]  # the bandwidth: the model's
         assert Options(mode="similarity", model="learning-free", refine=False, device="cpu", bandwidth=16
                        ).arguments() == ["--mode", "similarity", "--bandwidth", "16", "--device", "cpu",
                                          "--model", "none", "--no-refine"]

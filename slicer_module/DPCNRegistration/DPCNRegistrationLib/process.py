@@ -35,11 +35,14 @@ class Options:
     """``default`` (dpcn-med's default model), ``learning-free``, or the path of a model file."""
     refine: bool = True
     device: str = "auto"
-    bandwidth: int = 32
+    bandwidth: int | None = None
+    """``None``: the model's (32 for the learning-free solver), as ``dpcn-med register`` takes it."""
 
     def arguments(self) -> list[str]:
         """The ``dpcn-med register`` options for these choices."""
-        arguments = ["--mode", self.mode, "--bandwidth", str(int(self.bandwidth)), "--device", self.device]
+        arguments = ["--mode", self.mode, "--device", self.device]
+        if self.bandwidth is not None:
+            arguments[2:2] = ["--bandwidth", str(int(self.bandwidth))]
         if self.model == "learning-free":
             arguments += ["--model", "none"]
         elif self.model != "default":
