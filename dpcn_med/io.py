@@ -234,6 +234,10 @@ def _read_file(name: str, filename: str, max_bytes: int | None) -> sitk.Image:
     except RuntimeError as error:
         if os.path.getsize(filename) == 0:
             raise InputError(f"{name}: is empty (0 bytes); copy or export it again") from None
+        header = _nifti_header_bytes(filename)
+        if header is not None and header < _NIFTI_HEADER_BYTES:  # a NIfTI cut inside its header
+            raise InputError(f"{name}: is truncated (its NIfTI header ends after {header} of {_NIFTI_HEADER_BYTES} "
+                             "bytes); copy or export it again") from None
         if "Unable to determine ImageIO reader" in str(error) and filename.lower().endswith(
                 (*IMAGE_WRITE_SUFFIXES, ".nhdr", ".mhd")):  # a reader for the name, but not for the content
             raise InputError(f"{name}: its content is in none of the formats read here ({_INPUT_FORMATS}), whatever "
@@ -249,6 +253,31 @@ def _read_file(name: str, filename: str, max_bytes: int | None) -> sitk.Image:
     except RuntimeError as error:
         raise InputError(f"{name}: the voxels cannot be read ({_sitk_reason(error)}); the file is probably truncated "
                          "or corrupt: copy or export it again") from None
+
+
+_NIFTI_HEADER_BYTES = 348
+"""Length of a NIfTI-1 header."""
+
+
+def _nifti_header_bytes(filename: str) -> int | None:
+    """How many of a NIfTI header's bytes ``filename`` (named .nii or .nii.gz) holds, up to 348; ``None`` for
+    other names and for a .gz that is not gzip."""
+    lower = filename.lower()
+    if not lower.endswith((".nii", ".nii.gz")):
+        return None
+    if lower.endswith(".gz"):
+        with open(filename, "rb") as stream:
+            if stream.read(2) != _GZIP_MAGIC:  # not gzip at all: not a cut NIfTI either
+                return None
+    found = b""
+    with contextlib.suppress(OSError, EOFError, zlib.error):  # a cut or corrupt gzip stream: what came before counts
+        with (gzip.open(filename, "rb") if lower.endswith(".gz") else open(filename, "rb")) as stream:
+            while len(found) < _NIFTI_HEADER_BYTES:
+                chunk = stream.read(_NIFTI_HEADER_BYTES - len(found))
+                if not chunk:
+                    break
+                found += chunk
+    return len(found)
 
 
 def _split_series(name: str) -> tuple[Path | None, str | None]:
@@ -729,8 +758,9 @@ def read_transform(path: str | os.PathLike) -> sitk.Transform:
 
     Raises:
         InputNotFoundError: the path does not exist.
-        InputError: the file is not a readable transform, not 3-D, holds non-finite parameters, or (a text file) a
-            parameter that is not a number or a linear transform with another number of parameters than its class.
+        InputError: the file is not a readable transform, not 3-D, of a class SimpleITK cannot read back, holds
+            non-finite parameters, or (a text file) a parameter that is not a number or a linear transform with
+            another number of parameters than its class.
     """
     name = os.fspath(path)
     if not os.path.exists(name):
@@ -743,6 +773,9 @@ def read_transform(path: str | os.PathLike) -> sitk.Transform:
     except RuntimeError as error:
         raise InputError(f"{name}: not a readable transform ({_sitk_reason(error)}); expected an ITK transform file "
                          f"({', '.join(TRANSFORM_SUFFIXES)}) as SimpleITK, ITK or Slicer write it") from None
+    except KeyError:  # SimpleITK's ReadTransform cannot downcast a few classes it writes (measured, 2.5)
+        raise InputError(f"{name}: holds a transform class SimpleITK cannot read back (ComposeScaleSkewVersor3D is "
+                         "one); write it as an AffineTransform") from None
     if transform.GetDimension() != 3:
         raise InputError(f"{name}: is a {transform.GetDimension()}-D transform; expected a 3-D one")
     if not _finite_parameters(transform):
@@ -757,12 +790,17 @@ def _check_transform_text(name: str) -> None:
     read; when a linear transform then has fewer parameters than its class, it reads past them, and the process dies
     of heap corruption ("corrupted size vs. prev_size"), or goes on with values from uninitialised memory.
     """
-    with open(name, "rb") as file:
-        if not file.read(64).startswith(b"#Insight Transform File"):
-            return  # HDF5, or not a transform: ReadTransform says so
-    lines = read_text(name, encoding="latin-1").splitlines()
+    try:
+        with open(name, "rb") as file:
+            if file.read(4) == b"\x89HDF":
+                return  # HDF5: its parameters are stored as arrays, not parsed from text
+            file.seek(0)
+            text = file.read().decode("latin-1")
+    except OSError as error:
+        raise InputError(f"{name}: cannot be read ({error.strerror or error}); check that it is a transform file you "
+                         "may read") from None
     kind = None
-    for number, line in enumerate(lines, start=1):
+    for number, line in enumerate(text.splitlines(), start=1):
         key, _, value = line.partition(":")
         if key.strip() == "Transform":
             kind = value.strip()
@@ -784,8 +822,10 @@ def _linear_parameter_count(kind: str | None) -> int | None:
     """How many parameters a linear ITK transform class named ``kind`` (``Euler3DTransform_double_3_3``) takes;
     ``None`` for classes whose count depends on the file (B-splines, fields) or that SimpleITK lacks. (Fixed
     parameters are left to ITK, which refuses too few and takes 3 or 4 for Euler3DTransform.)"""
-    name = (kind or "").split("_")[0].replace("MatrixOffsetTransformBase", "AffineTransform")
-    factory = getattr(sitk, name, None)
+    match = re.fullmatch(r"(\w+?)_(?:double|float)_3_3", (kind or "").strip())
+    if match is None:  # another dimension (ReadTransform says so) or an unknown layout
+        return None
+    factory = getattr(sitk, match.group(1).replace("MatrixOffsetTransformBase", "AffineTransform"), None)
     if not isinstance(factory, type) or not issubclass(factory, sitk.Transform):
         return None
     try:

@@ -8,6 +8,7 @@ import math
 import os
 import re
 import shutil
+import socket
 import subprocess
 import sys
 import textwrap
@@ -124,6 +125,17 @@ class TestReadImage:
         path.write_bytes(b"")
         with pytest.raises(InputError, match=r"garbage\.nii\.gz: is empty \(0 bytes\); copy or export it again$"):
             io.read_image(path)
+
+    @pytest.mark.parametrize("name,keep", [("v.nii.gz", 100), ("v.nii", 200)])
+    def test_a_nifti_cut_inside_its_header_is_truncated(self, tmp_path, name, keep):
+        """It was said to be in none of the formats read here, whatever its name says."""
+        whole = tmp_path / f"whole{name[1:]}"
+        noise = np.random.default_rng(0).random((8, 8, 8)).astype(np.float32)  # incompressible: 100 bytes cut it
+        sitk.WriteImage(sitk.GetImageFromArray(noise), str(whole))
+        (tmp_path / name).write_bytes(whole.read_bytes()[:keep])
+        with pytest.raises(InputError, match=rf"{re.escape(name)}: is truncated \(its NIfTI header ends after \d+ of "
+                                             r"348 bytes\); copy or export it again$"):
+            io.read_image(tmp_path / name)
 
     def test_unsupported_format(self, tmp_path):
         path = tmp_path / "notes.xyz"
@@ -689,6 +701,39 @@ class TestReadTransform:
                         f"Parameters: {parameters}\nFixedParameters: 0 0 0 0\n")
         with pytest.raises(InputError, match=rf"t\.tfm: {message}; compute and write the transform again"):
             io.read_transform(path)
+
+    @pytest.mark.parametrize("transform", [sitk.AffineTransform(2), sitk.TranslationTransform(2)],
+                             ids=lambda t: t.GetName())
+    def test_a_two_dimensional_text_file_is_named_as_such(self, tmp_path, transform):
+        """Counted as its 3-D class, an AffineTransform_double_2_2 was said to lack parameters."""
+        sitk.WriteTransform(transform, str(tmp_path / "t.tfm"))
+        with pytest.raises(InputError, match="is a 2-D transform; expected a 3-D one"):
+            io.read_transform(tmp_path / "t.tfm")
+
+    def test_a_class_simpleitk_cannot_read_back_is_named(self, tmp_path):
+        """A raw KeyError from SimpleITK's Downcast before: an internal error."""
+        sitk.WriteTransform(sitk.ComposeScaleSkewVersor3DTransform(), str(tmp_path / "t.tfm"))
+        with pytest.raises(InputError, match=r"t\.tfm: holds a transform class SimpleITK cannot read back .*write it "
+                                             r"as an AffineTransform$"):
+            io.read_transform(tmp_path / "t.tfm")
+
+    def test_a_comment_line_first_does_not_hide_misread_parameters(self, tmp_path):
+        path = tmp_path / "t.tfm"
+        path.write_text("# written by hand\n#Insight Transform File V1.0\n#Transform 0\n"
+                        "Transform: Euler3DTransform_double_3_3\nParameters: 0 0 0 1 2\nFixedParameters: 0 0 0 0\n")
+        with pytest.raises(InputError, match=r"line 5: Euler3DTransform_double_3_3 takes 6 Parameters, the file "
+                                             r"gives 5"):
+            io.read_transform(path)
+
+    def test_a_file_that_cannot_be_opened_is_an_input_error(self, tmp_path):
+        """A socket (or an unreadable file) escaped as a raw OSError, an internal error."""
+        server = socket.socket(socket.AF_UNIX)
+        server.bind(str(tmp_path / "t.tfm"))
+        try:
+            with pytest.raises(InputError, match=r"t\.tfm: cannot be read \("):
+                io.read_transform(tmp_path / "t.tfm")
+        finally:
+            server.close()
 
     def test_text_files_of_every_linear_kind_and_composites_still_read(self, tmp_path):
         for number, transform in enumerate([sitk.AffineTransform(3), sitk.TranslationTransform(3, (1.0, 2.0, 3.0)),
