@@ -432,11 +432,14 @@ def _model_identity(model: str) -> str | dict[str, str]:
     identity = {}
     for kind, path in zip(("weights", "config"), model_paths(model)):
         identity[kind] = os.path.realpath(path)
+        digest = hashlib.sha256()
         try:
-            with open(path, "rb") as file:
-                identity[f"{kind}_sha256"] = hashlib.file_digest(file, "sha256").hexdigest()
+            with open(path, "rb") as file:  # in blocks: hashlib.file_digest is Python 3.11's, and 3.10 is supported
+                for block in iter(lambda: file.read(1 << 20), b""):
+                    digest.update(block)
         except OSError:
-            pass
+            continue
+        identity[f"{kind}_sha256"] = digest.hexdigest()
     return identity
 
 

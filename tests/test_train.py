@@ -594,8 +594,9 @@ class TestDistributed:
         # No GPU here: the device resolves as it would on a machine with two.
         monkeypatch.setattr(distributed, "resolve_device", lambda device: torch.device(device))
         monkeypatch.setenv("WORLD_SIZE", "2")
-        with pytest.raises(InputError, match=r"^device 'cuda:1' names one GPU for all 2 processes of torchrun; use "
-                                             r"'cuda' \(each process takes cuda:LOCAL_RANK\) or 'auto'$"):
+        with pytest.raises(InputError, match=r"^device 'cuda:1' names one GPU for all 2 processes of torchrun on "
+                                             r"this machine; use 'cuda' \(each process takes cuda:LOCAL_RANK\) or "
+                                             r"'auto'$"):
             distributed.start("cuda:1")
 
 

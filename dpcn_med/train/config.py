@@ -122,7 +122,8 @@ class TrainConfig:
         data: the pairs.
         optimiser: the optimisation.
         seed: of the pairs and the initial weights (each rank, and each resumed start, draws its own stream of
-            synthetic pairs; rank ``r`` crops real pairs with ``seed + r``).
+            synthetic pairs; rank ``r`` crops each folder's real pairs with a seed drawn from ``seed + r`` and the
+            folder's place in the list).
         device: ``auto``, ``cpu``, ``cuda`` (under torchrun, each process takes ``cuda:LOCAL_RANK``).
         log_every, validate_every, checkpoint_every: in steps.
         resume: continue from ``output/checkpoint`` when it exists (which must have been made with this model, data

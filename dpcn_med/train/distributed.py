@@ -46,9 +46,11 @@ def start(device: str = "auto") -> Process:
     chosen = resolve_device(device)
     use_cuda = chosen.type == "cuda"
     if use_cuda:
-        if chosen.index is not None and world_size > 1:  # every process on one GPU: NCCL fails, "Duplicate GPU"
-            raise InputError(f"device {device!r} names one GPU for all {world_size} processes of torchrun; use "
-                             "'cuda' (each process takes cuda:LOCAL_RANK) or 'auto'")
+        # Every process of a machine on one GPU: NCCL fails ("Duplicate GPU"); one process per machine may name it.
+        local = int(os.environ.get("LOCAL_WORLD_SIZE", str(world_size)))
+        if chosen.index is not None and local > 1:
+            raise InputError(f"device {device!r} names one GPU for all {local} processes of torchrun on this machine; "
+                             "use 'cuda' (each process takes cuda:LOCAL_RANK) or 'auto'")
         if chosen.index is None:
             chosen = torch.device(f"cuda:{local_rank}")
         if chosen.index >= torch.cuda.device_count():
