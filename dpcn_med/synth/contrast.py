@@ -98,8 +98,12 @@ def random_intensity_map(volume: Tensor, generator: torch.Generator, *, knots: i
         ``(B, 1, D, H, W)`` in ``[0, 1]``, 0 exactly where ``volume`` is 0.
     """
     check_volumes("volume", volume)
-    knots = check_integer("knots", knots, minimum=2, maximum=MAX_KNOTS)
-    check_flag("monotonic", monotonic)
+    return _intensity_map(volume, generator, check_integer("knots", knots, minimum=2, maximum=MAX_KNOTS),
+                          check_flag("monotonic", monotonic))
+
+
+def _intensity_map(volume: Tensor, generator: torch.Generator, knots: int, monotonic: bool) -> Tensor:
+    """:func:`random_intensity_map` of checked arguments."""
     outputs = uniform(generator, (volume.shape[0], knots), 0.0, 1.0, like=volume)
     if monotonic:
         outputs = outputs.sort(-1).values
@@ -139,8 +143,12 @@ def bias_field(volume: Tensor, generator: torch.Generator, *, strength: float = 
     """
     # Written out rather than MONAI's RandBiasField: that one draws from numpy, one volume at a time, on the host.
     check_volumes("volume", volume)
-    strength = check_real("strength", strength, minimum=0.0, maximum=MAX_BIAS_STRENGTH)
-    order = check_integer("order", order, minimum=1, maximum=MAX_BIAS_ORDER)
+    return _bias(volume, generator, check_real("strength", strength, minimum=0.0, maximum=MAX_BIAS_STRENGTH),
+                 check_integer("order", order, minimum=1, maximum=MAX_BIAS_ORDER))
+
+
+def _bias(volume: Tensor, generator: torch.Generator, strength: float, order: int) -> Tensor:
+    """:func:`bias_field` of checked arguments."""
     batch = volume.shape[0]
     size = order + 1
     degree = torch.arange(size, device=volume.device)
@@ -186,6 +194,11 @@ def blur(volume: Tensor, generator: torch.Generator, *,
     """
     check_volumes("volume", volume)
     check_pair("sigma_range", sigma_range, minimum=0.0, maximum=MAX_SIGMA, equal=True)
+    return _blur(volume, generator, sigma_range)
+
+
+def _blur(volume: Tensor, generator: torch.Generator, sigma_range: tuple[float, float]) -> Tensor:
+    """:func:`blur` of checked arguments."""
     return _gaussian_blur(volume, uniform(generator, (volume.shape[0],), *sigma_range, like=volume))
 
 
@@ -203,6 +216,11 @@ def resolution_loss(volume: Tensor, generator: torch.Generator, *,
     """
     check_volumes("volume", volume)
     check_pair("factor_range", factor_range, minimum=1.0, equal=True)
+    return _thick_slices(volume, generator, factor_range)
+
+
+def _thick_slices(volume: Tensor, generator: torch.Generator, factor_range: tuple[float, float]) -> Tensor:
+    """:func:`resolution_loss` of checked arguments."""
     batch = volume.shape[0]
     factors = uniform(generator, (batch,), *factor_range, like=volume).tolist()
     axes = integers(generator, 3, batch)
@@ -238,7 +256,11 @@ def noise(volume: Tensor, generator: torch.Generator, *,
     # Written out rather than MONAI's RandGaussianNoise / RandRicianNoise: those draw from numpy on the host.
     check_volumes("volume", volume)
     check_pair("std_range", std_range, minimum=0.0, maximum=MAX_NOISE_STD, equal=True)
-    check_flag("rician", rician)
+    return _noise(volume, generator, std_range, check_flag("rician", rician))
+
+
+def _noise(volume: Tensor, generator: torch.Generator, std_range: tuple[float, float], rician: bool) -> Tensor:
+    """:func:`noise` of checked arguments."""
     std = _per_sample(uniform(generator, (volume.shape[0],), *std_range, like=volume))
     real = volume + std * normal(generator, tuple(volume.shape), like=volume)
     if not rician:
@@ -261,9 +283,12 @@ def random_modality(volume: Tensor, generator: torch.Generator, config: Contrast
     Returns:
         ``(B, 1, D, H, W)`` in ``[0, 1]``, same device and dtype.
     """
-    mapped = random_intensity_map(volume, generator, knots=config.knots, monotonic=config.monotonic)
-    biased = bias_field(mapped, generator, strength=config.bias_strength, order=config.bias_order)
+    # The volume is checked once, the config on its making: each step's own check of a finite input (a host sync on
+    # CUDA) repeated five times a call, ten a pair.
+    check_volumes("volume", volume)
+    mapped = _intensity_map(volume, generator, config.knots, config.monotonic)
+    biased = _bias(mapped, generator, config.bias_strength, config.bias_order)
     peak = biased.flatten(1).amax(-1).clamp_min(torch.finfo(volume.dtype).tiny)
-    blurred = blur(biased / _per_sample(peak), generator, sigma_range=config.sigma_range)
-    thick = resolution_loss(blurred, generator, factor_range=config.factor_range)
-    return noise(thick, generator, std_range=config.noise_std_range, rician=config.rician).clamp(0.0, 1.0)
+    blurred = _blur(biased / _per_sample(peak), generator, config.sigma_range)
+    thick = _thick_slices(blurred, generator, config.factor_range)
+    return _noise(thick, generator, config.noise_std_range, config.rician).clamp(0.0, 1.0)
