@@ -35,12 +35,12 @@ from dpcn_med.benchmark import SUCCESS_MM
 from dpcn_med.cli import MIN_CONFIDENCE
 from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
-from dpcn_med.io import read_csv, write_csv
+from dpcn_med.io import write_csv
 from dpcn_med.preprocess import foreground_mask
 from dpcn_med.register import register
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import count_type, generated_by, publish, refuse_run_options  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, generated_by, publish, read_unique_rows, refuse_run_options  # noqa: E402  (the scripts' shared helpers)
 from partial_fov import (  # noqa: E402  (the same slabs and poses)
     CASES,
     case_images,
@@ -111,16 +111,8 @@ def combined_rows(paths: list[Path]) -> list[dict]:
         InputError: a missing or malformed file (:func:`dpcn_med.io.read_csv`), or a pose (case, overlap, trial)
             found twice: a file given twice would count its poses twice.
     """
-    rows, seen = [], {}
-    for path in paths:
-        for line, row in read_csv(path, ROW_FIELDS):
-            key = (row["case"], round(100 * row["overlap_fraction"]), row["trial"])
-            if key in seen:
-                raise InputError(f"{path}: line {line}: {row['case']}, {row['overlap_fraction']:.0%} overlap, trial "
-                                 f"{row['trial']} is also in {seen[key]}")
-            seen[key] = path
-            rows.append(row)
-    return rows
+    return read_unique_rows(paths, ROW_FIELDS, lambda r: (r["case"], round(100 * r["overlap_fraction"]), r["trial"]),
+                            lambda r: f"{r['case']}, {r['overlap_fraction']:.0%} overlap, trial {r['trial']}")
 
 
 def separation(rows: list[dict]) -> str:

@@ -8,12 +8,15 @@ import argparse
 import shlex
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from dpcn_med.cli import count_type
-from dpcn_med.io import write_text
+from dpcn_med.errors import InputError
+from dpcn_med.io import read_csv, write_text
 
-__all__ = ["count_type", "fraction_type", "generated_by", "publish", "refuse_run_options"]
+__all__ = ["count_type", "fraction_type", "generated_by", "publish", "read_unique_rows", "refuse_run_options"]
 
 
 def fraction_type(text: str) -> float:
@@ -25,6 +28,25 @@ def fraction_type(text: str) -> float:
     if not 0 < value <= 1:  # NaN too
         raise argparse.ArgumentTypeError(f"{text!r} is not a fraction in (0, 1] (1 is the whole)")
     return value
+
+
+def read_unique_rows(paths: list[Path], fields: dict[str, Callable[[str], Any]], key: Callable[[dict], tuple],
+                     shown: Callable[[dict], str]) -> list[dict]:
+    """The rows of earlier runs' CSVs (``--combine``), in the files' order, each ``fields`` converted.
+
+    Raises:
+        InputError: a missing or malformed file (:func:`dpcn_med.io.read_csv`), or a row whose ``key`` an earlier row
+            has (a file given twice would count its rows twice); the message names the row by ``shown``.
+    """
+    rows, seen = [], {}
+    for path in paths:
+        for line, row in read_csv(path, fields):
+            found = key(row)
+            if found in seen:
+                raise InputError(f"{path}: line {line}: {shown(row)} is also in {seen[found]}")
+            seen[found] = path
+            rows.append(row)
+    return rows
 
 
 def refuse_run_options(parser: argparse.ArgumentParser, argv: list[str] | None, options: dict[str, str]) -> None:

@@ -36,13 +36,20 @@ import SimpleITK as sitk
 from dpcn_med.benchmark import METHODS, SUCCESS_MM, available_methods
 from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
-from dpcn_med.io import atomic_output, read_csv, write_csv
+from dpcn_med.io import atomic_output, write_csv
 from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
 from dpcn_med.register import register
 from dpcn_med.solver import SolverConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import count_type, fraction_type, generated_by, publish, refuse_run_options  # noqa: E402  (the scripts' shared helpers)
+from markdown import (  # noqa: E402  (the scripts' shared helpers)
+    count_type,
+    fraction_type,
+    generated_by,
+    publish,
+    read_unique_rows,
+    refuse_run_options,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -178,16 +185,9 @@ def combined_rows(paths: list[Path]) -> list[dict]:
         InputError: a missing or malformed file (:func:`dpcn_med.io.read_csv`), or a registration (case, overlap,
             trial, method, label) found twice: a file given twice would count its poses twice.
     """
-    rows, seen = [], {}
-    for path in paths:
-        for line, row in read_csv(path, ROW_FIELDS):
-            key = (row["case"], round(100 * row["overlap"]), row["trial"], row["method"], row["label"])
-            if key in seen:
-                raise InputError(f"{path}: line {line}: {row['case']}, {row['overlap']:.0%} overlap, trial "
-                                 f"{row['trial']}, {row['method']} ({row['label']}) is also in {seen[key]}")
-            seen[key] = path
-            rows.append(row)
-    return rows
+    return read_unique_rows(
+        paths, ROW_FIELDS, lambda r: (r["case"], round(100 * r["overlap"]), r["trial"], r["method"], r["label"]),
+        lambda r: f"{r['case']}, {r['overlap']:.0%} overlap, trial {r['trial']}, {r['method']} ({r['label']})")
 
 
 def series(rows: list[dict]) -> list[tuple[str, str]]:
