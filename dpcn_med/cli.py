@@ -390,8 +390,8 @@ def _read_pairs(path: Path) -> list[dict[str, str | None]]:
         pair_id = (row.get("id") or f"{index:03d}-{Path(row['moving']).name.split('.')[0]}").strip()
         if pair_id.casefold() in seen:  # Sub01 and sub01 would share one folder on macOS and Windows
             first_line, first = seen[pair_id.casefold()]
-            alike = "" if first == pair_id else f" ({first!r}: ids that differ only in case share a folder on macOS "
-            alike += "" if first == pair_id else "and Windows)"
+            alike = ("" if first == pair_id
+                     else f" ({first!r}: ids that differ only in case share a folder on macOS and Windows)")
             raise InputError(f"{path}: line {line}: id {pair_id!r} is repeated (case aside): line {first_line} has "
                              f"it{alike}; give every pair its own id")
         if (pair_id in ("", ".", "..", "summary.csv") or any(c in pair_id for c in "/\\")
