@@ -1179,7 +1179,7 @@ def read_text(path: str | os.PathLike, *, encoding: str = "utf-8") -> str:
                          ) from None
 
 
-_MAGIC = {b"\x1f\x8b": "gzip-compressed (.gz)", b"PK\x03\x04": "zip", b"\x89HDF": "HDF5",
+_MAGIC = {_GZIP_MAGIC: "gzip-compressed (.gz)", b"PK\x03\x04": "zip", b"\x89HDF": "HDF5",
           b"\x89PNG": "PNG image"}
 """Leading bytes of binary files a text reader may be handed by mistake (a .nii.gz for a pairs file)."""
 
