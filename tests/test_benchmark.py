@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import SimpleITK as sitk
 
 from dpcn_med import benchmark
 from dpcn_med.benchmark import BenchmarkConfig, markdown, rotation_in_bin, run_benchmark, write_outputs
@@ -258,6 +259,39 @@ class TestSummary:
             main(["benchmark", "--help"])
         assert "quick mode leaves out ants-multistart" in " ".join(capsys.readouterr().out.split())
         assert set(benchmark.METHODS) - set(benchmark.QUICK.methods) == {"ants-multistart"}
+
+
+class TestFailures:
+    def test_a_baseline_that_raises_scores_the_starting_pose_and_the_run_goes_on(self, tmp_path, monkeypatch):
+        """An ITK error in a baseline stopped the whole run, at the same pose on every rerun."""
+        label, package, _ = benchmark.METHODS["sitk-geometry"]
+
+        def broken(fixed, moving, folder):
+            raise RuntimeError("Joint PDF summed to zero")
+
+        monkeypatch.setitem(benchmark.METHODS, "sitk-geometry", (label, package, broken))
+        said: list[str] = []
+        config = BenchmarkConfig(cases=("mni",), methods=("sitk-geometry",), trials=1, run_bins=("150-180",))
+        rows = benchmark.run_benchmark(config, progress=said.append)
+        fixed, _ = benchmark.CASES["mni"][2]()
+        rng = np.random.default_rng([config.seed, 0])
+        truth = [benchmark.rotation_in_bin(rng, low, high, foreground_box(fixed)[0], config.max_shift_mm)
+                 for low, high in config.bins][-1]
+        start = target_registration_error(sitk.Transform(3, sitk.sitkIdentity), truth, foreground_corners(fixed))
+        assert [r["tre_mm"] for r in rows] == [pytest.approx(start)] and start > 2.0
+        assert said[-2].endswith("sitk-geometry: raised RuntimeError (Joint PDF summed to zero); scored at the "
+                                 "starting pose")
+
+    def test_an_error_of_dpcn_med_stops_the_run(self, monkeypatch):
+        label, package, _ = benchmark.METHODS["dpcn-global"]
+
+        def broken(fixed, moving, folder):
+            raise RuntimeError("a bug of ours")
+
+        monkeypatch.setitem(benchmark.METHODS, "dpcn-global", (label, package, broken))
+        with pytest.raises(RuntimeError, match="a bug of ours"):
+            benchmark.run_benchmark(BenchmarkConfig(cases=("mni",), methods=("dpcn-global",), trials=1,
+                                                    run_bins=("0-30",)))
 
 
 class TestJournal:
