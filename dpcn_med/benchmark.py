@@ -528,7 +528,7 @@ def write_outputs(rows: list[dict], config: BenchmarkConfig, output: str | os.Pa
     if settings is None:
         (output / SETTINGS).unlink(missing_ok=True)  # a run's before, in a folder --combine writes over
     else:
-        io.write_text(json.dumps(settings, indent=2) + "\n", output / SETTINGS)
+        io.write_json(settings, output / SETTINGS)
     summary = summarise(rows)
     counts = sorted({r["trials"] for r in summary})
     poses = f"{counts[0]}" if len(counts) == 1 else f"{counts[0]}-{counts[-1]}"
@@ -589,14 +589,11 @@ def combined_settings(folders: list[str | os.PathLike]) -> dict | None:
         path = Path(folder) / SETTINGS
         if not path.exists():
             continue
-        try:
-            settings = json.loads(io.read_text(path))
-        except json.JSONDecodeError as error:
-            raise InputError(f"{path}: not a benchmark's settings ({error})") from None
-        for other, theirs in found.items():
-            if theirs != settings:
-                raise InputError(f"{path}: other settings than {other} ({settings}, there {theirs}): their poses "
-                                 "differ; combine runs with the same --seed, --trials and mode only")
+        settings = io.read_json(path)
+        first, theirs = next(iter(found.items()), (path, settings))  # equal to the first, so to every other
+        if settings != theirs:
+            raise InputError(f"{path}: other settings than {first} ({settings}, there {theirs}): their poses "
+                             "differ; combine runs with the same --seed, --trials and mode only")
         found[path] = settings
     return next(iter(found.values())) if len(found) == len(folders) else None
 
