@@ -157,8 +157,8 @@ class TrainConfig:
 
 
 MAX_SEED = 2 ** 32 - 1
-"""Seeds are unsigned 32-bit integers: numpy's SeedSequence refuses negative ones, and the loop's per-step seeds
-(``seed * 1_000_003 + ...``) must fit torch's 64-bit generator seed."""
+"""Seeds are unsigned 32-bit integers: numpy's SeedSequence, which derives the run's other seeds from them
+(:func:`dpcn_med.train.folders.derived_seed`), refuses negative ones."""
 
 _SETTINGS_FIELDS = {(ModelConfig, "preprocessing"): Preprocessing, (ModelConfig, "solver"): SolverConfig}
 """Mapping fields whose entries are the fields of another dataclass, and are checked as such."""

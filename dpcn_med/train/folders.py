@@ -69,6 +69,12 @@ _TABLE_HEADER = re.compile(r"^\s*Point\s+x\s+y\s+z\s+new_x\s+new_y\s+new_z\s*$",
 _ROW_START = re.compile(r"^\s*\d")
 
 
+def derived_seed(*parts: int) -> int:
+    """A seed for one stream of draws named by ``parts`` (non-negative integers: a seed, a rank, an index, a step),
+    through numpy's SeedSequence: streams of different parts do not overlap, as sums of scaled parts can."""
+    return int(np.random.SeedSequence(parts).generate_state(1)[0])
+
+
 @dataclass(frozen=True)
 class PairFiles:
     """The files of one pair folder.
@@ -426,7 +432,7 @@ class FolderPairs(torch.utils.data.Dataset):
         pair = self.grids(index)
         fixed = pair.fixed
         if self.crop is not None:
-            seed = int(np.random.SeedSequence([self.seed, index, self.epoch]).generate_state(1)[0])
+            seed = derived_seed(self.seed, index, self.epoch)
             generator = torch.Generator().manual_seed(seed)
             low, high = self.crop
             fraction = low + (high - low) * float(torch.rand((), generator=generator))

@@ -20,7 +20,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 import torch.distributed as dist
 from torch import Tensor
@@ -34,7 +33,7 @@ from dpcn_med.solver import PoseTarget, SolveResult
 from dpcn_med.train import distributed
 from dpcn_med.train.config import TrainConfig
 from dpcn_med.train.data import sample_pairs, validation_set, volume_bank
-from dpcn_med.train.folders import FolderPairs, collate_pairs
+from dpcn_med.train.folders import FolderPairs, collate_pairs, derived_seed
 
 SUCCESS_DEGREES, SUCCESS_VOXELS = 5.0, 2.0
 """A registration succeeds within 5 degrees and 2 voxels (the learning issue's criterion)."""
@@ -96,7 +95,7 @@ def pair_stream_seed(seed: int, rank: int, step: int) -> int:
     """The seed of the synthetic pairs a rank draws from ``step`` on: one stream per (seed, rank, start step), so a
     resumed run draws new pairs, not the old ones, nor another rank's (``seed * 1_000_003 + rank * 7_919 + step``
     gave rank 0 resumed at step 7919 the pairs of rank 1 from step 0)."""
-    return int(np.random.SeedSequence([seed, rank, step]).generate_state(1)[0])
+    return derived_seed(seed, rank, step)
 
 
 def _real_pairs(roots: tuple[str, ...], config: TrainConfig, *, crop: tuple[float, float] | None, seed: int
@@ -113,7 +112,7 @@ def _real_pairs(roots: tuple[str, ...], config: TrainConfig, *, crop: tuple[floa
     # A seed per folder: ConcatDataset hands each its own indices, so with one seed pair i of every folder was cropped
     # alike at every step.
     datasets = [FolderPairs(root, config.model.bandwidth, crop=crop,
-                            seed=int(np.random.SeedSequence([seed, position]).generate_state(1)[0]),
+                            seed=derived_seed(seed, position),
                             preprocessing=config.model.grid_preprocessing()) for position, root in enumerate(roots)]
     for dataset in datasets:
         for index in range(len(dataset)):
