@@ -32,7 +32,7 @@ import SimpleITK as sitk
 from scipy.stats import mannwhitneyu
 
 from dpcn_med.benchmark import SUCCESS_MM
-from dpcn_med.cli import MIN_CONFIDENCE
+from dpcn_med.outputs import MIN_CONFIDENCE
 from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
 from dpcn_med.io import write_csv

@@ -1,4 +1,4 @@
-"""``dpcn-med``: register volumes from the command line (thin over :mod:`dpcn_med.register`).
+"""``dpcn-med``: register volumes from the command line (thin over :mod:`dpcn_med.outputs` and :mod:`dpcn_med.batch`).
 
 Exit codes: 0 success; 2 bad input (one line on stderr naming the file and the problem, nothing written); 3 result
 written but the solver's confidence is below ``--min-confidence``; 130 interrupted (Ctrl-C or SIGTERM), nothing written
@@ -8,35 +8,20 @@ for the unfinished pair; 1 internal error.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
-import os
-import shutil
 import signal
 import sys
-import tempfile
 import threading
-import time
 import traceback
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from dpcn_med import __version__
 from dpcn_med.errors import InputError
+from dpcn_med.outputs import MIN_CONFIDENCE, OUTPUT_NAMES, RegistrationSettings, check_output_folder
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_LOW_CONFIDENCE = 0, 1, 2, 3
-MIN_CONFIDENCE = 0.003
-"""Default threshold on the solver's confidence (translation-peak mass), learning-free, B = 32. Measured: 0.0007-0.0011
-for five pairs of unrelated volumes; 1.0 for correct same-modality round trips; 0.11-0.88 for the real MRI-DIR CT to
-T2 from 21 starts; 0.0024 for the built-in pseudo-CT to MR demo pose, correct (docs/registration.md, Confidence)."""
-
-OUTPUT_NAMES = ("transform.tfm", "transform.h5", "inverse.tfm", "inverse.h5", "moving_resampled.nii.gz",
-                "overview.png", "report.json")
-"""What ``register`` writes into its output folder; ``report.json`` comes last and marks a finished pair."""
-
-PAIR_COLUMNS = ("id", "fixed", "moving", "fixed_mask", "moving_mask")
-"""The columns of a register-batch pairs file; fixed and moving are required."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -91,6 +76,13 @@ def _parser() -> argparse.ArgumentParser:
                                 "resumes.")
     batch.add_argument("pairs", type=Path, help="CSV file with a header row")
     batch.add_argument("-o", "--output", required=True, type=output_path, help="output folder (created)")
+    engines = batch.add_mutually_exclusive_group()
+    engines.add_argument("--workers", type=count_type(), metavar="N",
+                         help="register N pairs at a time on a local Dask cluster of N single-threaded processes "
+                         "(needs dpcn_med[cluster])")
+    engines.add_argument("--scheduler", metavar="ADDRESS",
+                         help="register on the running Dask cluster at ADDRESS (tcp://HOST:8786); its workers read "
+                         "the inputs and write the outputs by the same paths (shared storage; needs dpcn_med[cluster])")
 
     training = commands.add_parser("train", parents=[tracebacks],
                                    help="train the feature networks (DPCN++) from a YAML config",
@@ -194,149 +186,11 @@ def output_path(text: str) -> Path:
     return Path(text)
 
 
-def check_output_folder(output: Path) -> None:
-    """Refuse, before any work, an output folder that exists as a file or cannot be created or written."""
-    try:
-        if output.exists() and not output.is_dir():
-            raise InputError(f"{output}: exists and is not a folder; choose another output folder")
-        for existing in (output, *output.absolute().parents):
-            if existing.exists():
-                break
-            if existing.is_symlink():  # mkdir would fail on it after the work
-                raise InputError(f"{output}: cannot be created: {existing} is a link to {os.readlink(existing)}, which "
-                                 "does not exist; choose another output folder")
-        if not existing.is_dir():
-            raise InputError(f"{output}: cannot be created: {existing} is a file; choose another output folder")
-        if not os.access(existing, os.W_OK | os.X_OK):
-            raise InputError(f"{output}: cannot be written: no write permission in {existing}; choose another output "
-                             "folder")
-    except OSError as error:  # a name too long for the file system, a loop of links
-        raise InputError(f"{output}: cannot be used ({error.strerror}); choose another output folder") from None
-
-
-def _make_folder(output: Path, *, staging: bool = False) -> Path:
-    """Create ``output`` and its missing parents; with ``staging``, return a new hidden folder inside it.
-
-    Raises:
-        InputError: naming ``output``, where the checks before the work could not tell (``/proc/x``, a full disk).
-    """
-    try:
-        output.mkdir(parents=True, exist_ok=True)
-        return Path(tempfile.mkdtemp(prefix=".dpcn-med-", dir=output)) if staging else output
-    except OSError as error:
-        raise InputError(f"{output}: cannot be written ({error.strerror}); choose another output folder") from None
-
-
-def _refuse_overwriting_inputs(inputs: dict[str, str], targets: Iterable[Path]) -> None:
-    """Refuse, before any work, a run that would write one of ``targets`` over one of its ``inputs`` (each path with
-    what messages call it), however spelt: a link, or ``out/x/../in.nii.gz`` with no ``x`` yet, which names
-    ``out/in.nii.gz`` once the output folders are made (``realpath`` drops ``x/..`` when ``x`` is missing)."""
-    existing = {}
-    for path, description in inputs.items():
-        with contextlib.suppress(OSError):
-            found = os.stat(os.path.realpath(path))
-            existing.setdefault((found.st_dev, found.st_ino), description)
-    for target in targets:
-        try:
-            found = os.stat(os.path.realpath(target))
-        except OSError:  # not there: nothing to overwrite
-            continue
-        if (found.st_dev, found.st_ino) in existing:
-            raise InputError(f"{target}: is {existing[found.st_dev, found.st_ino]}, which this run would replace; "
-                             "choose another output folder (inputs are never overwritten)")
-
-
-def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespace, *, fixed_mask: str | None = None,
-                  moving_mask: str | None = None, label: str = "") -> tuple[int, dict]:
-    """Register one pair and write every output into ``output`` at once (staged, then renamed into place).
-
-    Returns:
-        ``(exit code, report)``; input errors raise :class:`InputError` before anything is written.
-    """
-    from dpcn_med import io
-    from dpcn_med.register import register
-    from dpcn_med.report import overview_figure, registration_report
-
-    _refuse_overwriting_inputs({p: "an input of this run" for p in (fixed, moving, fixed_mask, moving_mask)
-                                if p is not None}, [output / name for name in OUTPUT_NAMES])
-    check_output_folder(output)
-    for name in OUTPUT_NAMES:
-        if (output / name).is_dir() and not (output / name).is_symlink():
-            raise InputError(f"{output / name}: exists and is a folder, where {name} is to be written; move it or "
-                             "choose another output folder")
-
-    outputs = written_outputs(args)
-    started, begun = time.perf_counter(), time.time()
-    result = register(fixed, moving, mode=args.mode, model=args.model, bandwidth=args.bandwidth, refine=args.refine,
-                      device=args.device, fixed_mask=fixed_mask, moving_mask=moving_mask,
-                      fixed_modality=args.fixed_modality, moving_modality=args.moving_modality,
-                      resample=args.resampled, progress=_Progress(args.quiet, args.verbose, label,
-                                                                  args.progress == "json"))
-    low = not result.confidence >= args.min_confidence  # NaN is never confident
-    report = registration_report(result, fixed=fixed, moving=moving, fixed_mask=fixed_mask, moving_mask=moving_mask,
-                                 min_confidence=args.min_confidence, outputs=list(outputs))
-    report["timings_s"] = {**report["timings_s"], "total": time.perf_counter() - started}  # not result.timings
-    report["request"] = _request(fixed, moving, fixed_mask, moving_mask, args, result.bandwidth)
-
-    # Stage everything in a hidden folder inside the output folder (one file system, so the moves are renames), then
-    # move it in: a failed or interrupted run leaves no partial result, nor the folders it created.
-    created = [folder for folder in (output, *output.absolute().parents) if not folder.exists()]
-    for stale in output.glob(".dpcn-med-*"):  # staging left by a run killed outright (SIGKILL, a power cut)
-        with contextlib.suppress(OSError):
-            if stale.is_dir() and not stale.is_symlink() and stale.stat().st_mtime < begun:
-                shutil.rmtree(stale)
-    staging, finished = None, False
-    try:
-        staging = _make_folder(output, staging=True)
-        io.write_transform(result.fixed_to_moving, staging / "transform.tfm")
-        io.write_transform(result.fixed_to_moving, staging / "transform.h5")
-        io.write_transform(result.moving_to_fixed, staging / "inverse.tfm")
-        io.write_transform(result.moving_to_fixed, staging / "inverse.h5")
-        if args.resampled:
-            io.write_image(result.resampled, staging / "moving_resampled.nii.gz")
-        if args.overview:
-            overview_figure(result.fixed_image, result.moving_image, result.fixed_to_moving, staging / "overview.png",
-                            title=f"{Path(moving).name} onto {Path(fixed).name}: confidence {result.confidence:.3f}, "
-                            f"overlap {result.overlap:.0%}",
-                            centre=result.fixed_grid.centre)  # the fixed foreground centre, already found
-        io.write_json(report, staging / "report.json")
-        earlier = _earlier_outputs(output)
-        with io.interrupts_deferred():  # Ctrl-C between two renames would leave two runs' files side by side
-            (output / "report.json").unlink(missing_ok=True)  # first: killed outright, the pair reads as unfinished
-            # An earlier run's files this one does not write would read as this one's; a file its report does not
-            # list is not known to be a run's (the user's own overview.png), and stays.
-            for name in earlier - set(outputs):
-                (output / name).unlink(missing_ok=True)
-            for name in outputs:  # report.json last: it marks the pair as finished
-                os.replace(staging / name, output / name)
-            finished = True
-    finally:
-        if staging is not None:
-            shutil.rmtree(staging, ignore_errors=True)
-        if not finished:
-            for folder in created:  # deepest first; one holding anything else stays
-                try:
-                    folder.rmdir()
-                except OSError:
-                    break
-    return (EXIT_LOW_CONFIDENCE if low else EXIT_OK), report
-
-
-def _earlier_outputs(output: Path) -> set[str]:
-    """The files of :data:`OUTPUT_NAMES` that the report.json of an earlier run in ``output`` lists (none if there is
-    no readable one)."""
-    from dpcn_med import io
-
-    try:
-        return set(OUTPUT_NAMES) & set(io.read_json(output / "report.json")["outputs"])
-    except (InputError, KeyError, TypeError):  # none, unreadable, or not a report
-        return set()
-
-
-def written_outputs(args: argparse.Namespace) -> tuple[str, ...]:
-    """The files of :data:`OUTPUT_NAMES` that ``register`` writes with these options, in writing order."""
-    skipped = {"moving_resampled.nii.gz": not args.resampled, "overview.png": not args.overview}
-    return tuple(name for name in OUTPUT_NAMES if not skipped.get(name, False))
+def _settings(args: argparse.Namespace) -> RegistrationSettings:
+    return RegistrationSettings(mode=args.mode, model=args.model, bandwidth=args.bandwidth, refine=args.refine,
+                                device=args.device, fixed_modality=args.fixed_modality,
+                                moving_modality=args.moving_modality, min_confidence=args.min_confidence,
+                                resampled=args.resampled, overview=args.overview)
 
 
 def _summary_line(report: dict) -> str:
@@ -348,208 +202,70 @@ def _summary_line(report: dict) -> str:
 
 
 def _register(args: argparse.Namespace) -> int:
-    code, report = register_pair(args.fixed, args.moving, args.output, args, fixed_mask=args.fixed_mask,
-                                 moving_mask=args.moving_mask)
+    from dpcn_med.outputs import register_to_folder
+
+    settings = _settings(args)
+    report = register_to_folder(args.fixed, args.moving, args.output, settings=settings, fixed_mask=args.fixed_mask,
+                                moving_mask=args.moving_mask,
+                                progress=_Progress(args.quiet, args.verbose, "", args.progress == "json"))
     if not args.quiet:
         print(_summary_line(report))
         if args.verbose:
             for stage, seconds in report["timings_s"].items():
                 print(f"  {stage:<28s}{seconds * 1000:10.1f} ms")
         print(f"outputs in {args.output}/: {', '.join(report['outputs'])}")
-    if code == EXIT_LOW_CONFIDENCE:
+    if settings.low_confidence(report["confidence"]):
         look = (f"look at {args.output / 'overview.png'}" if args.overview
                 else "check it (rerun without --no-overview for overview.png)")
         print(f"dpcn-med: warning: confidence {report['confidence']:.4f} is below {args.min_confidence}; the result "
               f"is written but may be wrong: {look}", file=sys.stderr)
-    return code
+        return EXIT_LOW_CONFIDENCE
+    return EXIT_OK
 
 
-def _path_cell(value: str | None) -> str:
-    """A pairs-file cell that must hold a path (a short row leaves ``None``)."""
-    if not value or not value.strip():
-        raise ValueError("a fixed or moving path is missing")
-    return value.strip()
-
-
-def _read_pairs(path: Path) -> list[dict[str, str | None]]:
-    """The pairs of a pairs file, paths resolved against its folder (``~`` is the home folder, as in a shell); a row
-    without an id gets ``NNN-STEM`` (its place among the rows and the moving file's name up to its first dot).
-
-    Raises:
-        InputError: naming the file and line: a missing path, an unknown column or an extra cell, a NUL character in
-            a path, or an id that is repeated (case aside) or is not a folder name (empty, '.', '..', 'summary.csv',
-            a slash, a control character, over 255 bytes).
-    """
-    from dpcn_med import io
-
-    rows = io.read_csv(path, {"fixed": _path_cell, "moving": _path_cell}, allowed=PAIR_COLUMNS)
-    if not rows:
-        raise InputError(f"{path}: no pairs (a header row with at least the columns fixed,moving, then a row a pair)")
-    pairs, seen = [], {}
-    for index, (line, row) in enumerate(rows, start=1):
-        pair_id = (row.get("id") or f"{index:03d}-{Path(row['moving']).name.split('.')[0]}").strip()
-        if pair_id.casefold() in seen:  # Sub01 and sub01 would share one folder on macOS and Windows
-            first_line, first = seen[pair_id.casefold()]
-            alike = ("" if first == pair_id
-                     else f" ({first!r}: ids that differ only in case share a folder on macOS and Windows)")
-            raise InputError(f"{path}: line {line}: id {pair_id!r} is repeated (case aside): line {first_line} has "
-                             f"it{alike}; give every pair its own id")
-        if (pair_id in ("", ".", "..", "summary.csv") or any(c in pair_id for c in "/\\")
-                or any(ord(c) < 32 for c in pair_id) or len(pair_id.encode()) > 255):
-            raise InputError(f"{path}: line {line}: id {pair_id!r} is not a folder name inside the output folder "
-                             "(empty, '.', '..', 'summary.csv', a slash, a control character, or over 255 bytes)")
-        seen[pair_id.casefold()] = (line, pair_id)
-        cells = {key: (row.get(key) or "").strip() for key in ("fixed", "moving", "fixed_mask", "moving_mask")}
-        if any("\0" in value for value in cells.values()):
-            raise InputError(f"{path}: line {line}: a path holds a NUL character")
-        pairs.append({"id": pair_id, **{key: str(path.parent / os.path.expanduser(value)) if value else None
-                                        for key, value in cells.items()}})
-    return pairs
-
-
-def _request(fixed: str, moving: str, fixed_mask: str | None, moving_mask: str | None,
-             args: argparse.Namespace, bandwidth: int) -> dict:
-    """What a registration was asked for (report.json's ``request``): the inputs, resolved, and the options that
-    change its result (``bandwidth`` resolved: ``--bandwidth`` or the model's). A batch rerun reuses an earlier
-    result only if this matches."""
-    resolved = {key: None if value is None else os.path.realpath(value) for key, value in
-                (("fixed", fixed), ("moving", moving), ("fixed_mask", fixed_mask), ("moving_mask", moving_mask))}
-    return {**resolved, "mode": args.mode, "bandwidth": bandwidth, "model": _model_identity(args.model),
-            "refine": args.refine, "fixed_modality": args.fixed_modality, "moving_modality": args.moving_modality}
-
-
-def _model_identity(model: str) -> str | dict[str, str]:
-    """A model as a request names it: ``none`` for the learning-free solver, else its files' real paths and SHA-256
-    (a model trained again into the same folder, or a relative path from another folder, was taken for the earlier
-    one). Files that cannot be read leave their path alone: the registration then says what is wrong."""
-    import hashlib
-
-    from dpcn_med.models.weights import model_paths
-    from dpcn_med.register import LEARNING_FREE
-
-    if model.lower() in LEARNING_FREE:
-        return "none"
-    identity = {}
-    for kind, path in zip(("weights", "config"), model_paths(model)):
-        identity[kind] = os.path.realpath(path)
-        digest = hashlib.sha256()
-        try:
-            with open(path, "rb") as file:  # in blocks: hashlib.file_digest is Python 3.11's, and 3.10 is supported
-                for block in iter(lambda: file.read(1 << 20), b""):
-                    digest.update(block)
-        except OSError:
-            continue
-        identity[f"{kind}_sha256"] = digest.hexdigest()
-    return identity
-
-
-def _earlier_report(folder: Path, request: dict, outputs: Sequence[str]) -> tuple[dict | None, str]:
-    """The report.json a finished earlier run left in ``folder`` for this ``request`` and at least these
-    ``outputs``, and else why a report there is not reused ("" when there is none, or none readable; the pair is
-    then registered again)."""
-    from dpcn_med import io
-
-    if not (folder / "report.json").exists():
-        return None, ""
-    try:
-        report = io.read_json(folder / "report.json")
-        float(report["confidence"]), float(report["final"]["rotation_degrees"]), float(report["timings_s"]["total"])
-    except (InputError, KeyError, TypeError, ValueError):
-        return None, ""
-    if report.get("request") != request:
-        return None, "replaced an earlier result of other inputs or settings"
-    missing = [name for name in outputs if name not in report.get("outputs", ())]
-    if missing:
-        return None, f"registered again: the earlier result lacks {', '.join(missing)}"
-    return report, ""
+_STATUS_CODES = {"bad input": EXIT_INPUT, "internal error": EXIT_INTERNAL, "low confidence": EXIT_LOW_CONFIDENCE,
+                 "done earlier, low confidence": EXIT_LOW_CONFIDENCE}
 
 
 def _register_batch(args: argparse.Namespace) -> int:
-    from dpcn_med import io
-    from dpcn_med.register import check_options
+    from dpcn_med.batch import plan_batch, run_batch
 
-    pairs = _read_pairs(args.pairs)
-    summary = args.output / "summary.csv"
-    if os.path.lexists(summary) and not summary.is_file():
-        raise InputError(f"{summary}: exists and is not a file; choose another output folder")
-    check_output_folder(args.output)
-    _, bandwidth, _, _ = check_options(mode=args.mode, model=args.model, bandwidth=args.bandwidth,
-                                       device=args.device, fixed_modality=args.fixed_modality,
-                                       moving_modality=args.moving_modality)
-    outputs = written_outputs(args)
-    earlier = [_earlier_report(args.output / pair["id"], _request(pair["fixed"], pair["moving"], pair["fixed_mask"],
-                                                                  pair["moving_mask"], args, bandwidth), outputs)
-               for pair in pairs]
-    # One pair's output must not replace another's input either: the second would read the first's result.
-    inputs = {str(args.pairs): "this run's pairs file"}
-    for pair in pairs:
-        for key in ("fixed", "moving", "fixed_mask", "moving_mask"):
-            if pair[key] is not None:
-                inputs.setdefault(pair[key], f"the {key.replace('_', ' ')} of pair {pair['id']!r}")
-    _refuse_overwriting_inputs(inputs, [summary, *(args.output / pair["id"] / name
-                                                   for pair, (report, _) in zip(pairs, earlier) if report is None
-                                                   for name in OUTPUT_NAMES)])
-    absent = [f"{pair['id']}: {pair[key]}" for pair, (report, _) in zip(pairs, earlier) if report is None
-              for key in ("fixed", "moving", "fixed_mask", "moving_mask")
-              if pair[key] is not None and not os.path.exists(_split_series_folder(pair[key]))]
-    if absent:  # those pairs fail as 'bad input' in their turn: a typo should not surface hours into a cohort
-        print(f"dpcn-med: warning: {len(absent)} path(s) of the pairs file do not exist ({'; '.join(absent[:5])}"
-              f"{'; ...' if len(absent) > 5 else ''}); those pairs will be reported as bad input", file=sys.stderr)
-    rows, codes = [], []
-    for index, (pair, (report, note)) in enumerate(zip(pairs, earlier), start=1):
-        label = f"[{index}/{len(pairs)}] {pair['id']} "
-        if report is not None:
-            low = not report["confidence"] >= args.min_confidence  # NaN is never confident
-            rows.append({"id": pair["id"], "status": "done earlier" + (", low confidence" if low else ""),
-                         "confidence": f"{report['confidence']:.4f}",
-                         "rotation_deg": f"{report['final']['rotation_degrees']:.1f}",
-                         "seconds": f"{report['timings_s']['total']:.1f}", "message": ""})
-            codes.append(EXIT_LOW_CONFIDENCE if low else EXIT_OK)
-        else:
-            codes.append(_register_row(pair, args, label, rows, note))
-        _make_folder(args.output)  # after every pair: an interrupted run's summary lists what it finished
-        io.write_csv(rows, summary)
+    if args.workers is not None or args.scheduler is not None:
+        from dpcn_med.cluster import require_dask
+
+        require_dask()
+    batch = plan_batch(args.pairs, args.output, settings=_settings(args))
+    if batch.missing:  # those pairs fail as 'bad input' in their turn: a typo should not surface hours into a cohort
+        print(f"dpcn-med: warning: {len(batch.missing)} path(s) of the pairs file do not exist "
+              f"({'; '.join(batch.missing[:5])}{'; ...' if len(batch.missing) > 5 else ''}); those pairs will be "
+              "reported as bad input", file=sys.stderr)
+    total = len(batch.jobs)
+
+    def label(job) -> str:
+        return f"[{job.index}/{total}] {job.id} "
+
+    def show(job, row: dict, error: Exception | None) -> None:
+        if row["status"].startswith("done earlier"):
+            return
+        if error is not None and args.verbose:
+            traceback.print_exception(type(error), error, error.__traceback__)
+        line = f"{label(job)}{row['status']} {row['message']}".rstrip()
+        if row["status"] in ("bad input", "internal error"):  # errors, on stderr, -q or not
+            print(line, file=sys.stderr)
+        elif not args.quiet:
+            print(line)
+
+    rows = run_batch(batch, on_row=show, workers=args.workers, scheduler=args.scheduler,
+                     progress_for=lambda job: _Progress(args.quiet, args.verbose, label(job), args.progress == "json"),
+                     status=None if args.quiet else lambda line: print(f"  {line}", file=sys.stderr))
     if not args.quiet:
         print(_table(rows))
-        print(f"summary in {summary}")
+        print(f"summary in {batch.summary}")
+    codes = {_STATUS_CODES.get(row["status"], EXIT_OK) for row in rows}
     for code in (EXIT_INTERNAL, EXIT_INPUT, EXIT_LOW_CONFIDENCE):
         if code in codes:
             return code
     return EXIT_OK
-
-
-def _split_series_folder(path: str) -> str:
-    """The folder of a ``FOLDER@SERIES_UID`` path (as :func:`dpcn_med.io.read_image` splits it), else ``path``."""
-    folder, _, uid = path.rpartition("@")
-    return folder if uid and not os.path.exists(path) and os.path.isdir(folder) else path
-
-
-def _register_row(pair: dict, args: argparse.Namespace, label: str, rows: list[dict], note: str) -> int:
-    """Register one pair of a batch, append its summary row to ``rows`` (``note`` its message), print its line;
-    returns its exit code."""
-    try:
-        code, report = register_pair(pair["fixed"], pair["moving"], args.output / pair["id"], args,
-                                     fixed_mask=pair["fixed_mask"], moving_mask=pair["moving_mask"], label=label)
-        rows.append({"id": pair["id"], "status": "ok" if code == EXIT_OK else "low confidence",
-                     "confidence": f"{report['confidence']:.4f}",
-                     "rotation_deg": f"{report['final']['rotation_degrees']:.1f}",
-                     "seconds": f"{report['timings_s']['total']:.1f}", "message": note})
-    except InputError as error:
-        code = EXIT_INPUT
-        rows.append({"id": pair["id"], "status": "bad input", "confidence": "", "rotation_deg": "", "seconds": "",
-                     "message": str(error)})
-    except Exception as error:  # one broken pair must not stop a cohort; it is reported and counted
-        code = EXIT_INTERNAL
-        rows.append({"id": pair["id"], "status": "internal error", "confidence": "", "rotation_deg": "",
-                     "seconds": "", "message": f"{type(error).__name__}: {error}"})
-        if args.verbose:
-            traceback.print_exc()
-    line = f"{label}{rows[-1]['status']} {rows[-1]['message']}".rstrip()
-    if code in (EXIT_INPUT, EXIT_INTERNAL):  # errors, on stderr, -q or not
-        print(line, file=sys.stderr)
-    elif not args.quiet:
-        print(line)
-    return code
 
 
 def _table(rows: list[dict[str, str]]) -> str:

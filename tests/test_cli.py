@@ -429,7 +429,7 @@ class TestFailureLeavesNothing:
         import os
         import signal
 
-        import dpcn_med.cli
+        import dpcn_med.outputs
 
         output = tmp_path / "out"
         assert main(["register", str(pair[0]), str(pair[0]), "-o", str(output), "--no-refine", "--no-overview",
@@ -443,7 +443,7 @@ class TestFailureLeavesNothing:
                     os.kill(os.getpid(), signal.SIGTERM)
             rename(source, target)
 
-        monkeypatch.setattr(dpcn_med.cli.os, "replace", interrupted)
+        monkeypatch.setattr(dpcn_med.outputs.os, "replace", interrupted)
         handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
         code = main(["register", str(pair[0]), str(pair[1]), "-o", str(output), "--no-refine", "--no-overview",
                      "--no-resampled"])
@@ -547,18 +547,18 @@ class TestBatch:
         assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["summary.csv"]
 
     def test_the_summary_lists_what_an_interrupted_run_finished(self, pair, tmp_path, capsys, monkeypatch):
-        import dpcn_med.cli
+        import dpcn_med.batch
 
         table = tmp_path / "pairs.csv"
         table.write_text(f"id,fixed,moving\na,{pair[0]},{pair[1]}\nb,{pair[0]},{pair[1]}\n")
-        register_pair = dpcn_med.cli.register_pair
+        register_pair = dpcn_med.batch.register_to_folder
 
         def interrupted_at_b(fixed, moving, output, *args, **kwargs):
             if output.name == "b":
                 raise KeyboardInterrupt
             return register_pair(fixed, moving, output, *args, **kwargs)
 
-        monkeypatch.setattr(dpcn_med.cli, "register_pair", interrupted_at_b)
+        monkeypatch.setattr(dpcn_med.batch, "register_to_folder", interrupted_at_b)
         assert main(["register-batch", str(table), "-o", str(tmp_path / "o"), "--no-refine", "--no-overview"]) == 130
         assert [row["id"] for row in csv.DictReader((tmp_path / "o" / "summary.csv").open())] == ["a"]
 
@@ -592,7 +592,7 @@ class TestBatch:
 
     def test_a_model_is_known_by_its_contents_not_by_the_path_given(self, tmp_path, monkeypatch):
         """A model trained again into the same folder had the earlier model's results reused ('done earlier')."""
-        from dpcn_med.cli import _model_identity
+        from dpcn_med.outputs import model_identity as _model_identity
         from dpcn_med.models import DPCN, ModelConfig, save_model
 
         config = ModelConfig(bandwidth=8, channels=(4, 8, 16), residual_units=0)
@@ -609,7 +609,7 @@ class TestBatch:
         assert _model_identity("None") == _model_identity("learning-free") == "none"
 
     def test_a_tilde_is_the_home_folder_and_other_paths_are_from_the_pairs_folder(self, tmp_path, monkeypatch):
-        from dpcn_med.cli import _read_pairs
+        from dpcn_med.batch import read_pairs as _read_pairs
 
         monkeypatch.setenv("HOME", str(tmp_path / "home"))
         (tmp_path / "pairs.csv").write_text("fixed,moving,moving_mask\n~/ct.nii.gz,mr.nii.gz,/abs/m.nii\n")
