@@ -29,7 +29,19 @@ def _parser() -> argparse.ArgumentParser:
                                      "registration of CT, MRI and ultrasound volumes (DPCN++ phase correlation).")
     parser.add_argument("--version", action="version", version=f"dpcn-med {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    options = _registration_options()
+    tracebacks = argparse.ArgumentParser(add_help=False)  # the commands without the loudness options
+    tracebacks.add_argument("-v", "--verbose", action="store_true", help="print the traceback of an internal error")
+    _add_register_commands(commands, options)
+    _add_train_command(commands, tracebacks)
+    _add_benchmark_command(commands, tracebacks)
+    info = commands.add_parser("info", parents=[tracebacks], help="print an image's geometry and intensity range")
+    info.add_argument("image", help="image file or DICOM folder")
+    return parser
 
+
+def _registration_options() -> argparse.ArgumentParser:
+    """The options of ``register`` and ``register-batch`` (a parent parser)."""
     options = argparse.ArgumentParser(add_help=False)
     options.add_argument("--mode", choices=("rigid", "similarity"), default="rigid",
                          help="rigid (6 DoF, default) or similarity (7 DoF, isotropic scale)")
@@ -51,13 +63,13 @@ def _parser() -> argparse.ArgumentParser:
     options.add_argument("--progress", choices=("auto", "json"), default="auto",
                          help="auto (default): a bar on a terminal; json: one JSON object per line on stdout, "
                          '{"stage": ..., "fraction": ...}, for programs that drive dpcn-med (the Slicer module)')
-    tracebacks = argparse.ArgumentParser(add_help=False)  # the commands without the loudness options
-    tracebacks.add_argument("-v", "--verbose", action="store_true", help="print the traceback of an internal error")
-
     loudness = options.add_mutually_exclusive_group()
     loudness.add_argument("-q", "--quiet", action="store_true", help="print errors only")
     loudness.add_argument("-v", "--verbose", action="store_true", help="print timings; tracebacks on errors")
+    return options
 
+
+def _add_register_commands(commands, options: argparse.ArgumentParser) -> None:
     register = commands.add_parser("register", parents=[options], help="register MOVING onto FIXED",
                                    description="Register MOVING onto FIXED from any starting pose and write the "
                                    f"transform, its inverse, the resampled moving volume and a report into OUTDIR "
@@ -84,6 +96,8 @@ def _parser() -> argparse.ArgumentParser:
                          help="register on the running Dask cluster at ADDRESS (tcp://HOST:8786); its workers read "
                          "the inputs and write the outputs by the same paths (shared storage; needs dpcn_med[cluster])")
 
+
+def _add_train_command(commands, tracebacks: argparse.ArgumentParser) -> None:
     training = commands.add_parser("train", parents=[tracebacks],
                                    help="train the feature networks (DPCN++) from a YAML config",
                                    description="Train a model on synthetic pairs as CONFIG says (see training/configs/"
@@ -97,6 +111,8 @@ def _parser() -> argparse.ArgumentParser:
     training.add_argument("--device", help="auto, cpu or cuda (overrides the config's)")
     training.add_argument("--restart", action="store_true", help="ignore an existing checkpoint and start afresh")
 
+
+def _add_benchmark_command(commands, tracebacks: argparse.ArgumentParser) -> None:
     bench = commands.add_parser("benchmark", parents=[tracebacks],
                                 help="compare with SimpleITK, ANTs and elastix by initial rotation",
                                 description="Register the same pairs with dpcn_med and the classical tools, in "
@@ -122,10 +138,6 @@ def _parser() -> argparse.ArgumentParser:
                        help="run nothing: one summary and figure of earlier runs' results.csv (say, split by --cases "
                        "or --bins over several cores; the same poses, which follow from the case, --seed and "
                        "--trials: folders whose settings.json differ are refused)")
-
-    info = commands.add_parser("info", parents=[tracebacks], help="print an image's geometry and intensity range")
-    info.add_argument("image", help="image file or DICOM folder")
-    return parser
 
 
 class _Progress:

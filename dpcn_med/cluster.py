@@ -125,10 +125,11 @@ def _row_of(future, job: PairJob) -> tuple[dict, Exception | None]:
 
 
 def _status_line(done: int, failed: int, left: int, slots: int, elapsed: float) -> str:
-    rate = elapsed / done  # wall seconds per pair, with the cluster's parallelism
-    minutes = rate * left / 60
-    eta = f"about {minutes:.0f} min left" if minutes >= 1 else f"about {rate * left:.0f} s left"
-    return f"done {done}, failed {failed}, running {min(left, slots)}, waiting {max(left - slots, 0)}; {eta}"
+    counts = f"done {done}, failed {failed}, running {min(left, slots)}, waiting {max(left - slots, 0)}"
+    if not left:
+        return counts
+    seconds = elapsed / done * left  # wall seconds per pair so far, with the cluster's parallelism
+    return f"{counts}; about {seconds / 60:.0f} min left" if seconds >= 60 else f"{counts}; about {seconds:.0f} s left"
 
 
 _worker_ready = False
