@@ -41,7 +41,7 @@ LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 SIMILARITY_TOLERANCE = 1e-4
 """Relative spread of singular values (and, for a rigid transform, deviation of the scale from 1) still taken for a
-similarity: float32 files and solver rotations agree to about 1e-7; shear or anisotropy that matters is far larger."""
+similarity (why this value: docs/design_notes/geometry.md)."""
 
 
 def grid_centre(size: int) -> int:
@@ -192,14 +192,13 @@ def random_rotation(count: int, generator: torch.Generator | None = None, *, dty
 
 
 def project_to_rotation(matrix: Tensor, iterations: int = 12) -> Tensor:
-    """Nearest orthogonal matrix to ``matrix`` ``(..., d, d)`` by Newton's polar iteration.
+    """Nearest orthogonal matrix to ``matrix`` ``(..., d, d)`` by Newton's polar iteration ``X <- (X + X^-T) / 2``.
 
     The result keeps the sign of the determinant: it is a rotation when ``det(matrix) > 0``, as for a weighted mean of
-    nearby rotations, the use here.
+    nearby rotations, the use here (why not an SVD: docs/design_notes/geometry.md).
 
-    The iteration ``X <- (X + X^-T) / 2`` (Higham 1986) converges quadratically to the orthogonal polar factor. We use
-    it instead of an SVD because the SVD's backward divides by differences of singular values, which vanish exactly
-    where the input is already nearly a rotation: the case of a weighted mean of nearby rotations.
+    References:
+        Higham, "Computing the polar decomposition, with applications", SIAM J. Sci. Stat. Comput. 1986.
     """
     x = matrix
     for _ in range(iterations):
@@ -253,7 +252,7 @@ def sample(volume: Tensor, points: Tensor) -> Tensor:
     Args:
         volume: ``(B, C, D, H, W)`` or ``(B, C, H, W)``.
         points: ``(B, *S, d)`` voxel coordinates ``(x, y[, z])`` from the grid centre, any sample shape ``S``; moved
-            to the volume's device and dtype, as :func:`warp` does (float64 points on a float32 volume raised).
+            to the volume's device and dtype, as :func:`warp` does.
 
     Returns:
         ``(B, C, *S)`` values.

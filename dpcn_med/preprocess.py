@@ -30,8 +30,8 @@ UNIFORM_SPREAD = 1e-6
 MIN_SHRUNK_VOXELS = 4
 """``shrink_factors`` leaves at least this many voxels along each axis (or the axis as it is, if shorter)."""
 SHRINK_SLACK = 1.3
-"""An axis up to this many times finer than its share of ``max_voxels`` is left as it is: 1.4x too many voxels is
-worth halving it, 1.2x is not."""
+"""An axis up to this many times finer than its share of ``max_voxels`` is left as it is (why this value:
+docs/design_notes/preprocess.md)."""
 
 
 @dataclass(frozen=True)
@@ -45,11 +45,9 @@ class Preprocessing:
         ct_window: Hounsfield units mapped to 0 and 1 for CT, ``low < high`` (air to 0, soft tissue near the middle,
             bone saturating).
         outline_weight: the solver sees this much (0 to 1) of the binary foreground blended with the normalised
-            intensities. The outline is shared by every modality, the interior contrast is not: measured on the
-            built-in CT / MR pair, 16 of 16 random poses registered with half and half against 14 of 16 on
-            intensities alone (15 of 16 on the mask alone); same-modality pairs do as well or better.
-        max_voxels: larger images are first averaged down (``BinShrink``) to about this many voxels (at least 1000):
-            the canonical grid is far coarser, and foreground detection on a full CT takes seconds.
+            intensities (why: docs/design_notes/preprocess.md).
+        max_voxels: larger images are first averaged down (``BinShrink``) to about this many voxels (at least 1000);
+            the canonical grid is far coarser.
         ct_detection_hu: an image whose 1st percentile lies below this is taken for a CT when the modality is "auto"
             (air, and the scanner's padding, sit near -1000 HU or below; no MR or ultrasound goes there).
 
@@ -75,7 +73,6 @@ class Preprocessing:
         }
         for name, value in checked.items():
             object.__setattr__(self, name, value)
-
 
 
 def _strided_sample(values: np.ndarray) -> np.ndarray:
@@ -110,8 +107,8 @@ def clip_outliers(image: sitk.Image) -> sitk.Image:
 
 def histogram_values(image: sitk.Image) -> sitk.Image:
     """``image`` as a histogram of its intensities should see it (display windows, contour levels), float32: a CT's
-    padding below ``LOWEST_HU`` raised to air, then far outliers clipped (:func:`clip_outliers`). Counted as they
-    are, -2048 HU padding pulled a CT's Otsu levels to -236 HU and 8 hot voxels put every level above the anatomy."""
+    padding below ``LOWEST_HU`` raised to air, then far outliers clipped (:func:`clip_outliers`) (why:
+    docs/design_notes/preprocess.md)."""
     values = sitk.Cast(image, sitk.sitkFloat32)
     if sitk.GetArrayViewFromImage(values).min() < LOWEST_HU:
         values = sitk.Clamp(values, sitk.sitkFloat32, LOWEST_HU)
@@ -155,21 +152,15 @@ def _drawn_along_an_edge(image: sitk.Image, inside: np.ndarray, counted: np.ndar
 def foreground_mask(image: sitk.Image, mask: sitk.Image | None = None) -> sitk.Image:
     """Voxels brighter than Otsu's threshold, the largest connected component, holes filled: a binary image.
 
-    Otsu's threshold counts only the voxels that matter:
+    Otsu's threshold counts only the voxels that matter (why each: docs/design_notes/preprocess.md):
 
     - no CT padding: when the image goes below ``LOWEST_HU``, the voxels below it (the scanner's fill outside its
-      circular field of view, -3024 or -2048 HU, and its resampled edge) neither count nor are foreground. Counted,
-      Otsu split them from air and the whole field of view became the body.
+      circular field of view and its resampled edge) neither count nor are foreground.
     - no far outliers: values more than ``OUTLIER_SPREADS`` 0.1-99.9 percentile ranges beyond them are clipped to
-      them (8 voxels at 300 times the maximum made the foreground 1 voxel). The benchmark volumes lie within 1.04
-      ranges, 3071 HU metal in the MNI pseudo-CT within 0.63 (2.2 in a CT with no bone): their foreground is
-      Otsu's over the whole image, as before.
+      them.
     - only inside ``mask``, when given; the foreground lies within it. A mask drawn along an edge, a segmentation
       (the medians just inside and just outside its border on either side of the image's threshold), is itself the
-      foreground: a lung mask holds dark parenchyma, and Otsu inside it finds the vessels. Measured with register()
-      on a chest CT with lung masks, a mask around the smaller of two objects and rough boxes around the 2 mm MNI
-      head: Otsu inside the mask 277, 0.15 and 0.05 mm off; the mask itself 0.21, 13.9 and 0.49 mm; this 0.21, 0.15
-      and 0.05 mm.
+      foreground.
 
     Args:
         image: any 3-D image.
@@ -220,7 +211,7 @@ def normalize_intensity(image: sitk.Image, percentiles: tuple[float, float] = (1
 
     Robust to a few extreme voxels (markers, metal) and to the amount of background. ``mask``: the image's
     :func:`foreground_mask`, if already computed. A uniform foreground (a binary phantom, a voxelised mesh), whose
-    percentiles coincide, maps to 1 and the image's minimum to 0: mapped from its own percentiles, it was all 0.
+    percentiles coincide, maps to 1 and the image's minimum to 0.
     """
     percentiles = check_pair("percentiles", percentiles, minimum=0.0, maximum=100.0)
     array = sitk.GetArrayViewFromImage(image).astype(np.float32)
@@ -427,7 +418,7 @@ def voxelize(mesh: pyvista.DataSet, *, spacing: float = 1.0, margin: float = 10.
         Image with identity direction covering the mesh's bounds plus ``margin``; 1 inside, 0 outside.
 
     Raises:
-        InputError: the volume would not fit in memory (one stray point 3 m away asked for 3101^3 voxels, 111 GiB).
+        InputError: the volume would not fit in memory (a stray point far away, or coordinates not in mm).
     """
     bounds = np.asarray(mesh.bounds, dtype=np.float64).reshape(3, 2)
     origin = bounds[:, 0] - margin

@@ -19,19 +19,8 @@ _COUNT_MINIMUMS = {
     "scale_bandwidth": 1, "scale_radii": 16, "candidate_size": 8, "finalists": 1, "finalist_size": 8,
     "alternatives": 0, "upsample": 1, "log_polar_angles": 12, "log_polar_radii": 20, "iterations": 1,
 }
-"""Least value of each integer field of :class:`SolverConfig`. An empty top-k or an up-sampling by 0 gives empty
-tensors or NaN; a scored grid, whose translation peak alone is read, is at least 8 a side. The profile and log-polar
-counts are the least that still measured a pose, on random poses (rotation uniform, scale 0.8-1.2) of real volumes
-and slices (seg3d MR, stroke T1, MNI, MRI-DIR): below them the numbers passed but the pose was wrong.
-
-* ``scale_radii`` 16: the Hann taper leaves 2 and 3 at most one non-zero sample (the scale came back 1.0
-  whatever the pair); on 32^3 grids the worst scale error was 7.7-9.4% at 4, 5.4-8.5% at 8, 3.5-6.5% at 12 and
-  2.8-5.6% at 16, as at the default 64 (2.4-5.8%); on 64^3, 4.6% at 12 against 1.1% at 16 and 0.7% at 64.
-* ``log_polar_angles`` 12 (2-D): the worst pose was 57-180 degrees off at 2, 3 and 8, and 176 degrees at 10 (a
-  256^2 stroke slice); 12 kept every pose within 4.6 degrees and 1.2% scale on 128^2 to 256^2 slices.
-* ``log_polar_radii`` 20 (2-D): up to 16 the worst pose was 53-180 degrees or 15-53% in scale off (16: 59 degrees
-  and 17% on a 256^2 MR slice); 20 kept every pose within 4.1 degrees and 5.8% scale.
-"""
+"""Least value of each integer field of :class:`SolverConfig`: below it the solver fails or measures a wrong pose
+(the measurements: docs/design_notes/solver.md)."""
 
 _COUNT_MAXIMUMS = {
     "sphere_radii": 1024, "peaks": 64, "rotation_half_width": 16, "refine_oversample": 8, "refine_iterations": 30,
@@ -40,19 +29,14 @@ _COUNT_MAXIMUMS = {
     "log_polar_radii": 8192, "iterations": 32,
 }
 """Most of each integer field of :class:`SolverConfig`, far above the defaults and every shipped setting: beyond
-them a value is a typo, which allocated gigabytes (``sphere_radii`` and ``upsample`` multiply a grid's size) or
-failed inside torch (``peaks`` beyond the SO(3) grid in ``topk``). A scored grid is at most the largest solver grid
-(``2 * MAX_BANDWIDTH``); after 30 halvings the rotation step is below float32's resolution. ``alternatives`` has no
-maximum: each call sets it (from :attr:`dpcn_med.register.Refinement.starts`), and only the candidates there are
-come back."""
+them a value is a typo. ``alternatives`` has no maximum: only the candidates there are come back (the reasons:
+docs/design_notes/solver.md)."""
 
 _FLAGS = ("log_magnitude", "half_turns", "refine", "profile")
 
 MIN_TEMPERATURE = 1e-12
-"""Least float temperature. A softmax divides correlations in ``[-1, 1]`` by it: in float32 the poses were NaN from
-1e-39 (``2 / T`` overflows) and the gradient of a learned temperature, ``c / T^2``, overflowed from 1e-20 (measured
-on the seg3d MR, finite at 1e-19); 1e-12 keeps that gradient below 2e24, room for sums over the largest grids, and
-is ten orders of magnitude below the defaults (0.01-0.02). Anything near it is a hard arg-max already."""
+"""Least float temperature, ten orders of magnitude below the defaults: anything near it is a hard arg-max already
+(why this value: docs/design_notes/solver.md)."""
 
 
 @dataclass(frozen=True)
@@ -65,12 +49,8 @@ class SolverConfig:
         taper: apodisation window: fraction of the radius over which it falls to zero.
         sphere_band: radii aggregated onto the sphere, as fractions of the Nyquist radius (the band-pass).
         extra_sphere_bands: further bands, each with its own SO(3) correlation whose peaks join the candidates (the
-            primary ``sphere_band`` alone gives the training's rotation distribution). The lowest radii carry the
-            volume's outline, which cutting a slab or masking changes, and how high the anatomy's signal reaches
-            depends on the image: slabs of 60% of the seg3d head (pseudo-CT to T1) registered more often with a band
-            from 0.2 than from 0.05 (16 of 20 poses against 13), the upper half of the (smooth, averaged) MNI head
-            the reverse (1 of 9 against 9 of 9). With 0.05-0.6 and 0.3-0.9 together (the higher band reaches the
-            finer anatomy of a slab on the usual grid): 18 of 20 and 9 of 9 (docs/registration.md).
+            primary ``sphere_band`` alone gives the training's rotation distribution; why a second band:
+            docs/design_notes/solver.md).
         sphere_radii: samples per ray, log-spaced.
         log_magnitude: aggregate ``log |FFT|`` (True) or ``|FFT|``.
         peaks: rotation peaks carried through scale and translation (top-k).
@@ -159,8 +139,8 @@ def override(config: SolverConfig | None, **options: object) -> SolverConfig:
     """``config`` (default :class:`SolverConfig`) with the fields in ``options`` replaced, each checked.
 
     Raises:
-        InputError: ``config`` that is no :class:`SolverConfig`, an option that is no field of it
-            (``dataclasses.replace`` raised a ``TypeError`` for a typo such as ``bandwith``), or a value out of range.
+        InputError: ``config`` that is no :class:`SolverConfig`, an option that is no field of it (the message
+            suggests the closest field), or a value out of range.
     """
     if config is not None and not isinstance(config, SolverConfig):
         raise InputError(f"config is {shown(config)}; expected a SolverConfig or None")
@@ -188,8 +168,8 @@ class StageTemperatures:
     translation: Tensor | float = 0.01
 
     def __post_init__(self) -> None:
-        """Check that each temperature is a finite number of at least :data:`MIN_TEMPERATURE` (a softmax divides by
-        it: 0 and 1e-40 gave NaN poses) or a 0-d floating-point tensor.
+        """Check that each temperature is a finite number of at least :data:`MIN_TEMPERATURE` or a 0-d
+        floating-point tensor.
 
         Raises:
             InputError: a temperature that is neither.
@@ -205,12 +185,8 @@ def _band(name: str, value: object) -> tuple[float, float]:
 
 
 def _temperature(name: str, value: object) -> Tensor | float:
-    """``value`` if it is a finite float of at least :data:`MIN_TEMPERATURE`, or a 0-d floating-point tensor.
-
-    A tensor's value is not read: that would synchronise a GPU on every training step, and :class:`Temperatures`
-    keeps its own positive through a softplus. A tensor of any other shape would broadcast against the correlation
-    surface (one temperature per cell) instead of failing.
-    """
+    """``value`` if it is a finite float of at least :data:`MIN_TEMPERATURE`, or a 0-d floating-point tensor, whose
+    value is not read (no device synchronisation; why: docs/design_notes/solver.md)."""
     if not isinstance(value, Tensor):
         return check_real(name, value, minimum=MIN_TEMPERATURE)
     if not value.is_floating_point() or value.dim() != 0:

@@ -62,8 +62,7 @@ def sht(sphere: Tensor, degrees: tuple[int, ...]) -> Tensor:
 
     Returns:
         ``(batch, L, 2M + 1)`` complex coefficients ``S_l^m = integral s conj(Y_l^m)``, exact for functions of
-        band-limit
-        ``B``.
+        band-limit ``B``.
 
     Notes:
         ``S_l^m = (2 pi / 2B) sum_j w_j Y_l^m(theta_j, 0) sum_k s(theta_j, phi_k) exp(-i m phi_k)``: an FFT over

@@ -19,9 +19,8 @@ from dpcn_med.solver.translation import TranslationEstimate
 _WEIGHTS = ("rotation_kl", "rotation_l1", "translation_kl", "translation_l1", "scale_kl", "scale_l1")
 
 MIN_SIGMA = 1e-6
-"""Least target width (radians or cells). The Gaussian's exponent ``-d^2 / 2 sigma^2`` overflowed float32 to
-``-inf`` in every cell from about 1e-19 (every KL term NaN; measured finite at 1e-15); 1e-6 is far below a grid cell
-(0.025 rad at B = 128, one cell for shifts), where the target is one cell already."""
+"""Least target width (radians or cells), far below a grid cell, where the target is one cell already (why this
+value: docs/design_notes/solver.md)."""
 
 
 @dataclass(frozen=True)
@@ -44,8 +43,8 @@ class LossWeights:
     shift_sigma: float = 1.0
 
     def __post_init__(self) -> None:
-        """Check that the weights are finite and >= 0 and the widths finite and >= :data:`MIN_SIGMA` (a width of 0
-        gave NaN terms); store numpy scalars as Python floats.
+        """Check that the weights are finite and >= 0 and the widths finite and >= :data:`MIN_SIGMA`; store numpy
+        scalars as Python floats.
 
         Raises:
             InputError: a value of the wrong type or out of range.
@@ -69,7 +68,7 @@ def _kl_from_log_target(log_target: Tensor, log_prob: Tensor) -> Tensor:
 
 @functools.lru_cache(maxsize=2)
 def _euler_grid_rotations(bandwidth: int, device: torch.device, dtype: torch.dtype) -> Tensor:
-    """Rotation of every Euler grid cell: ``(2B, 2B, 2B, 3, 3)``, cached (75 MB at B = 64 in float32)."""
+    """Rotation of every Euler grid cell: ``(2B, 2B, 2B, 3, 3)``, cached (its size: docs/design_notes/solver.md)."""
     ticks = torch.arange(2 * bandwidth, device=device, dtype=dtype)
     return grid_rotations(bandwidth, torch.stack(torch.meshgrid(ticks, ticks, ticks, indexing="ij"), -1))
 
@@ -137,8 +136,8 @@ class PoseTarget:
     translation: Tensor
 
     def __post_init__(self) -> None:
-        """Check the shapes; on the CPU also that the values are finite and the scales positive (a scale of 0 gave NaN
-        scale terms). Values on another device are not read: that would synchronise it on every training step.
+        """Check the shapes; on the CPU also that the values are finite and the scales positive. Values on another
+        device are not read (no synchronisation at every training step).
 
         Raises:
             InputError: a value that is not a tensor, a shape that is not as above, or a bad value on the CPU.

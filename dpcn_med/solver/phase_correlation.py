@@ -62,8 +62,7 @@ def phase_correlation(fixed: Tensor, moving: Tensor, dim: int, *, whiten: bool =
 
     Returns:
         ``(surface, spectrum)``: the real ``(batch, *S)`` surface of :func:`correlation_surface` and the complex
-        spectrum of
-        :func:`cross_power_spectrum`, which :func:`refine_peak` reuses.
+        spectrum of :func:`cross_power_spectrum`, which :func:`refine_peak` reuses.
 
     Notes:
         If ``fixed(p) = moving(p + d)``, then ``FFT(moving)(k) = exp(-2 pi i k.d / N) FFT(fixed)(k)``, the whitened
@@ -83,8 +82,7 @@ class SoftPeak:
 
     Attributes:
         shift: ``(batch, d)`` expected shift, order ``(x, y[, z])`` (the last axis of the surface first), in grid cells
-            from
-            the centre index ``size // 2``.
+            from the centre index ``size // 2``.
         index: ``(batch, d)`` arg-max, same order and units (integers).
         mass: ``(batch,)`` softmax mass inside the window around the arg-max, in ``[0, 1]``: a confidence.
         log_prob: ``(batch, *S)`` global log-softmax of ``surface / temperature``, for the KL losses.
@@ -99,8 +97,7 @@ class SoftPeak:
 def unravel(flat: Tensor, sizes: tuple[int, ...]) -> Tensor:
     """``(...,)`` flat indices into a C-ordered array of ``sizes`` -> ``(..., d)`` indices, torch order.
 
-    ``torch.unravel_index`` imports sympy on its first call (about 0.6 s), which every command-line registration
-    paid; integer division does the same here.
+    Like ``torch.unravel_index``, by integer division (why not it: docs/design_notes/solver.md).
     """
     indices = []
     for size in reversed(sizes):

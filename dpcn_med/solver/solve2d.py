@@ -39,6 +39,35 @@ class Solve2dResult:
     translation_estimate: TranslationEstimate
 
 
+def _translate(fixed_image: Tensor, moving: Tensor, linear: Tensor, config: SolverConfig,
+               temperatures: StageTemperatures) -> TranslationEstimate:
+    """Translation stage: ``moving (batch, 1, N, N)`` compensated by ``linear (batch, 2, 2)`` and phase-correlated
+    with ``fixed_image (batch, N, N)``."""
+    return phase_translation(fixed_image, warp(moving, linear)[:, 0], temperatures.translation, dim=2,
+                             taper=config.taper, refine=config.refine, upsample=config.upsample)
+
+
+def _rotation_scale(fixed_magnitude: Tensor, current: Tensor, config: SolverConfig, temperatures: StageTemperatures
+                    ) -> LogPolarEstimate:
+    """One log-polar pass: rotation (modulo half a turn) and scale of ``current (batch, N, N)`` against the fixed
+    image's magnitude spectrum ``(batch, N, N)``."""
+    return log_polar_rotation_scale(fixed_magnitude, magnitude_spectrum(current, 2, config.taper),
+                                    config.log_polar_band, config.log_polar_radii, config.log_polar_angles,
+                                    temperatures.rotation, refine=config.refine, upsample=config.upsample)
+
+
+def _resolve_half_turn(fixed_image: Tensor, moving: Tensor, angle: Tensor, scale: Tensor, config: SolverConfig,
+                       temperatures: StageTemperatures) -> Tensor:
+    """Of ``angle`` and ``angle + pi`` (``(batch,)`` radians), the one whose compensated moving image has the higher
+    translation peak: ``(batch,)``. ``|FFT|`` is point-symmetric, so the log-polar pass cannot tell them apart."""
+    twins = torch.stack([angle, angle + math.pi], 1)  # (batch, 2)
+    heights = []
+    for k in range(2):
+        trial = scale[:, None, None] * rotation_2d(twins[:, k])
+        heights.append(_translate(fixed_image, moving, trial, config, temperatures).height)
+    return twins.gather(1, torch.stack(heights, 1).argmax(1, keepdim=True))[:, 0]
+
+
 def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: SolverConfig | None = None,
             temperatures: StageTemperatures | None = None, **options) -> Solve2dResult:
     """Globally register two images on the same square grid by phase correlation (4 or 3 DoF).
@@ -70,11 +99,6 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
     batch = fixed.shape[0]
     fixed_image = fixed[:, 0]
     fixed_magnitude = magnitude_spectrum(fixed_image, 2, config.taper)
-
-    def translate(linear: Tensor) -> TranslationEstimate:
-        return phase_translation(fixed_image, warp(moving, linear)[:, 0], temperatures.translation, dim=2,
-                                 taper=config.taper, refine=config.refine, upsample=config.upsample)
-
     angle = fixed.new_zeros(batch)
     scale = fixed.new_ones(batch)
     translation = fixed.new_zeros(batch, 2)
@@ -82,26 +106,18 @@ def solve2d(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: 
     for iteration in range(config.iterations):
         current = moving[:, 0] if iteration == 0 else warp(moving, scale[:, None, None] * rotation_2d(angle),
                                                           translation)[:, 0]
-        estimate = log_polar_rotation_scale(fixed_magnitude, magnitude_spectrum(current, 2, config.taper),
-                                            config.log_polar_band, config.log_polar_radii,
-                                            config.log_polar_angles, temperatures.rotation, refine=config.refine,
-                                            upsample=config.upsample)
+        estimate = _rotation_scale(fixed_magnitude, current, config, temperatures)
         step_scale = estimate.scale if mode == "similarity" else torch.ones_like(estimate.scale)
         if iteration == 0:
             first = estimate
-            twins = torch.stack([estimate.angle, estimate.angle + math.pi], 1)  # (batch, 2)
-            heights = []
-            for k in range(2):
-                trial = step_scale[:, None, None] * rotation_2d(twins[:, k])
-                heights.append(translate(trial).height)
-            step_angle = twins.gather(1, torch.stack(heights, 1).argmax(1, keepdim=True))[:, 0]
+            step_angle = _resolve_half_turn(fixed_image, moving, estimate.angle, step_scale, config, temperatures)
         else:
             step_angle = estimate.angle
         # Compose the residual: moving(A (A_r p + t_r) + t) with t_r = 0 here; translation is re-measured below.
         angle = angle + step_angle
         scale = scale * step_scale
         linear = scale[:, None, None] * rotation_2d(angle)
-        shift = translate(linear)
+        shift = _translate(fixed_image, moving, linear, config, temperatures)
         translation = (linear @ shift.shift[..., None])[..., 0]
     angle = torch.remainder(angle + math.pi, 2 * math.pi) - math.pi
     return Solve2dResult(rotation=rotation_2d(angle), angle=angle, scale=scale, translation=translation,

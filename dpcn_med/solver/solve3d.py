@@ -62,8 +62,7 @@ class SolveResult:
         translation: ``(batch, 3)`` voxels, order ``(x, y, z)``.
         confidence: ``(batch,)`` in ``[0, 1]``: softmax mass of the translation peak of the chosen candidate.
         rotation_log_prob: ``(batch, 2B, 2B, 2B)`` log-softmax over the Euler grid ``[alpha, beta, gamma]``
-            (Haar-weighted),
-            for the rotation KL loss.
+            (Haar-weighted), for the rotation KL loss.
         scale_estimate: the scale stage of the chosen candidate (``None`` in rigid mode).
         translation_estimate: the translation stage of the chosen candidate (shift before ``scale * rotation``).
         candidates: ``(batch,)`` number of rotation candidates left after dropping near-duplicates.
@@ -84,6 +83,31 @@ class SolveResult:
     alternatives: Alternatives | None = None
 
 
+@dataclass
+class _Spectra:
+    """What steps 1-3a of :func:`solve` leave for the later ones.
+
+    Attributes:
+        fixed_magnitude: ``(batch, N, N, N)`` ``fftshift``-ed magnitude spectrum of the fixed volume.
+        moving_magnitude: same for the moving volume.
+        directions: ``(2B, 2B, 3)`` unit vectors of the SOFT grid.
+        weights: ``(2B,)`` its quadrature weights.
+        degrees: the even degrees of the harmonic coefficients.
+        spheres: ``(fixed, moving)`` normalised spheres ``(batch, 2B, 2B)`` per band, the primary band first.
+        fixed_coeffs: ``(batch, L, 2M + 1)`` harmonic coefficients of each band's fixed sphere.
+        moving_coeffs: same for the moving spheres.
+    """
+
+    fixed_magnitude: Tensor
+    moving_magnitude: Tensor
+    directions: Tensor
+    weights: Tensor
+    degrees: tuple[int, ...]
+    spheres: list[tuple[Tensor, Tensor]]
+    fixed_coeffs: list[Tensor]
+    moving_coeffs: list[Tensor]
+
+
 def _sphere(magnitude: Tensor, band: tuple[float, float], config: SolverConfig, directions: Tensor, weights: Tensor
             ) -> Tensor:
     """Normalised sphere ``(batch, 2B, 2B)`` of a magnitude spectrum ``(batch, N, N, N)``, aggregated over ``band``.
@@ -93,6 +117,22 @@ def _sphere(magnitude: Tensor, band: tuple[float, float], config: SolverConfig, 
     radii = log_radii(magnitude.shape[-1], band, config.sphere_radii, device=magnitude.device, dtype=magnitude.dtype)
     batch_directions = directions.expand(magnitude.shape[0], *directions.shape)
     return normalize_sphere(to_sphere(magnitude, batch_directions, radii, log_magnitude=config.log_magnitude), weights)
+
+
+def _spectra(fixed_volume: Tensor, moving_volume: Tensor, bandwidth: int, config: SolverConfig) -> _Spectra:
+    """Steps 1-3a: magnitude spectra of ``(batch, N, N, N)`` volumes, their spheres per band, the spheres' harmonics."""
+    bands = (config.sphere_band, *config.extra_sphere_bands)
+    directions = sphere_directions(bandwidth, device=fixed_volume.device, dtype=fixed_volume.dtype)
+    weights = quadrature_weights(bandwidth, device=fixed_volume.device, dtype=fixed_volume.dtype)
+    fixed_magnitude = magnitude_spectrum(fixed_volume, 3, config.taper)
+    moving_magnitude = magnitude_spectrum(moving_volume, 3, config.taper)
+    spheres = [(_sphere(fixed_magnitude, band, config, directions, weights),
+                _sphere(moving_magnitude, band, config, directions, weights)) for band in bands]
+    degrees = even_degrees(bandwidth)
+    return _Spectra(fixed_magnitude=fixed_magnitude, moving_magnitude=moving_magnitude, directions=directions,
+                    weights=weights, degrees=degrees, spheres=spheres,
+                    fixed_coeffs=[sht(fixed_sphere, degrees) for fixed_sphere, _ in spheres],
+                    moving_coeffs=[sht(moving_sphere, degrees) for _, moving_sphere in spheres])
 
 
 def _with_half_turns(rotation: Tensor) -> Tensor:
@@ -105,6 +145,33 @@ def _with_half_turns(rotation: Tensor) -> Tensor:
     right = rotation[:, :, None] @ turns  # (batch, K, 4, 3, 3), the first is R itself
     left = turns[1:] @ rotation[:, :, None]  # (batch, K, 3, 3, 3)
     return torch.cat([right, left], dim=2).flatten(1, 2)
+
+
+def _rotation_peaks(correlations: list[Tensor], config: SolverConfig, temperature: Tensor | float
+                    ) -> tuple[list[Tensor], Tensor]:
+    """Step 3b: the rotation candidates of each band's SO(3) correlation ``(batch, 2B, 2B, 2B)``.
+
+    Returns:
+        ``(per_band, origin)``: ``(batch, K_b, 3, 3)`` soft arg-max rotations of each band's peaks (with their
+        half-turn twins when ``config.half_turns``), and ``(K,)`` the band each of the concatenated candidates came
+        from.
+    """
+    per_band = []
+    for correlation in correlations:
+        peak_rotation, _ = soft_argmax_so3(correlation, so3_peaks(correlation, config.peaks), temperature,
+                                           half_width=config.rotation_half_width)
+        per_band.append(_with_half_turns(peak_rotation) if config.half_turns else peak_rotation)
+    origin = torch.cat([torch.full((rotations.shape[1],), index, device=correlations[0].device)
+                        for index, rotations in enumerate(per_band)])
+    return per_band, origin
+
+
+def _scale_stage(spectra: _Spectra, rotation: Tensor, config: SolverConfig, temperatures: StageTemperatures
+                 ) -> ScaleEstimate:
+    """Step 4: the scale for ``(batch, K, 3, 3)`` rotations."""
+    return log_polar_scale(spectra.fixed_magnitude, spectra.moving_magnitude, rotation, config.scale_band,
+                           config.scale_radii, temperatures.scale, directions_bandwidth=config.scale_bandwidth,
+                           max_scale=config.max_scale, refine=config.refine, upsample=config.upsample)
 
 
 def _downsample(volume: Tensor, size: int) -> Tensor:
@@ -137,9 +204,8 @@ def _rank_candidates(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score
     an implausible candidate.
 
     Candidates whose sphere correlation falls more than ``sphere_margin`` below the best are implausible; the rest
-    are scored by their translation peak on a coarse grid, and the ``finalists`` best are scored again on a finer one.
-    A volume a few coarse voxels wide looks centrally symmetric, so the coarse score alone can prefer the mirror twin
-    (measured on the MNI template at B = 64) or a rotation 24 degrees off (seg3d).
+    are scored by their translation peak on a coarse grid, and the ``finalists`` best are scored again on a finer one
+    (why two grids: docs/design_notes/solver.md).
     """
     plausible = keep & (sphere_score >= sphere_score.masked_fill(~keep, float("-inf")).amax(-1, keepdim=True)
                         - config.sphere_margin)
@@ -155,6 +221,37 @@ def _rank_candidates(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score
     others = coarse.shape[1] - finalists.indices.shape[1]
     return (torch.cat([finalists.indices.gather(1, ranked.indices), rest.indices[:, :others]], 1),
             torch.cat([ranked.values, rest.values[:, :others]], 1))
+
+
+def _resolve_candidates(fixed_volume: Tensor, moving_volume: Tensor, spectra: _Spectra, per_band: list[Tensor],
+                        candidates: Tensor, mode: str, config: SolverConfig, temperatures: StageTemperatures
+                        ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Drop near-duplicate and implausible candidates, measure each one's scale, rank them by translation peak.
+
+    Args:
+        fixed_volume, moving_volume: ``(batch, N, N, N)``.
+        spectra: steps 1-3a of both volumes.
+        per_band: ``(batch, K_b, 3, 3)`` the candidates of each band.
+        candidates: ``(batch, K, 3, 3)`` all of them, ``per_band`` concatenated.
+        mode, config, temperatures: as :func:`solve`.
+
+    Returns:
+        ``(keep, scale, ranked, score)``: ``(batch, K)`` the candidates left after dropping near-duplicates, their
+        scales (ones in rigid mode), and the ranking of :func:`_rank_candidates` (indices and scores).
+    """
+    # Each candidate's sphere correlation in its own band, less that band's best: correlations of different
+    # bands are not comparable, their shortfalls from the best are.
+    sphere_score = torch.cat([score - score.amax(-1, keepdim=True) for score in (
+        sphere_correlation(moving_sphere, fixed_sphere, spectra.weights, spectra.directions, rotations)
+        for (fixed_sphere, moving_sphere), rotations in zip(spectra.spheres, per_band))], 1)
+    keep = deduplicate(candidates, sphere_score, math.radians(config.duplicate_degrees))
+    if mode == "similarity":
+        scale = _scale_stage(spectra, candidates, config, temperatures).scale
+    else:
+        scale = torch.ones(*candidates.shape[:2], device=candidates.device, dtype=candidates.dtype)
+    ranked, score = _rank_candidates(fixed_volume, moving_volume, scale[..., None, None] * candidates, sphere_score,
+                                     keep, config)
+    return keep, scale, ranked, score
 
 
 def _translation_stage(fixed: Tensor, moving: Tensor, linear: Tensor, temperature: Tensor | float,
@@ -174,6 +271,41 @@ def _translation_stage(fixed: Tensor, moving: Tensor, linear: Tensor, temperatur
     return (linear @ estimate.shift.view(batch, count, 3, 1))[..., 0], estimate
 
 
+def _alternatives(fixed_volume: Tensor, moving: Tensor, candidates: Tensor, scale: Tensor, ranked: Tensor,
+                  score: Tensor, config: SolverConfig, temperatures: StageTemperatures) -> Alternatives:
+    """The runner-up candidates (``ranked[:, 1:]``, up to ``config.alternatives``), each with a full-resolution
+    translation."""
+    rows = torch.arange(candidates.shape[0], device=candidates.device)[:, None]
+    others = ranked[:, 1:1 + config.alternatives]
+    rotations, scales = candidates[rows, others], scale[rows, others]
+    translations, estimate = _translation_stage(fixed_volume, moving, scales[..., None, None] * rotations,
+                                                temperatures.translation, config, refine=True)
+    return Alternatives(rotation=rotations, scale=scales, translation=translations,
+                        confidence=estimate.peak.mass.view(scales.shape), score=score[:, 1:1 + config.alternatives])
+
+
+def _refine_chosen(spectra: _Spectra, rotation: Tensor, band: Tensor, bandwidth: int, config: SolverConfig) -> Tensor:
+    """Continuous refinement of the chosen ``(batch, 3, 3)`` rotations, each on the sphere of its ``(batch,)`` band,
+    the fixed one re-sampled ``config.refine_oversample`` times finer."""
+    refined = rotation
+    for index in band.unique().tolist():
+        fine_sphere = isht(spectra.fixed_coeffs[index], spectra.degrees, bandwidth * config.refine_oversample)
+        candidate, _ = refine_rotation(spectra.spheres[index][1], fine_sphere, spectra.weights, spectra.directions,
+                                       rotation[:, None], step=math.pi / bandwidth, iterations=config.refine_iterations)
+        refined = torch.where((band == index)[:, None, None], candidate[:, 0], refined)
+    return refined
+
+
+def _chosen_scale(spectra: _Spectra, rotation: Tensor, mode: str, config: SolverConfig,
+                  temperatures: StageTemperatures) -> tuple[ScaleEstimate | None, Tensor]:
+    """Step 4 for the chosen ``(batch, 3, 3)`` rotations: the estimate (``None`` in rigid mode) and ``(batch,)``
+    scales (ones in rigid mode)."""
+    if mode != "similarity":
+        return None, torch.ones(rotation.shape[0], device=rotation.device, dtype=rotation.dtype)
+    estimate = _scale_stage(spectra, rotation[:, None], config, temperatures)
+    return estimate, estimate.scale[:, 0]
+
+
 def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: SolverConfig | None = None,
           temperatures: StageTemperatures | None = None, **options) -> SolveResult:
     """Globally register two volumes on the same cubic grid by differentiable phase correlation (DPC).
@@ -187,7 +319,8 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         **options: overrides of ``config`` fields, e.g. ``bandwidth=32, refine=False``.
 
     Returns:
-        A :class:`SolveResult` with ``fixed(p) ~ moving(scale * rotation @ p + translation)``.
+        A :class:`SolveResult` with ``fixed(p) ~ moving(scale * rotation @ p + translation)``. With ``refine=False``
+        every estimate is a soft arg-max, differentiable with respect to both inputs and the temperatures.
 
     Raises:
         InputError: malformed grids (shape, size, dtype, NaN/Inf, empty batch), a bandwidth out of range, an unknown
@@ -195,18 +328,7 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
 
     Convention:
         Voxel coordinates ``(x, y, z)`` from the grid centre, ZYZ Euler grid and pull resampling, all as in
-        :mod:`dpcn_med.geometry`.
-
-    Notes:
-        1. ``|FFT|`` of the apodised volumes removes translation; 2. averaging ``log |FFT|`` along rays onto the
-        SOFT sphere removes scale; 3. the SO(3) correlation of the spheres gives the rotation peaks; each peak and its
-        half-turn twins (near-duplicates and poor sphere matches dropped) are carried through 4. the log-radius scale
-        stage and 5. a translation phase correlation, coarse for all and finer for the best few; the candidate with
-        the highest translation peak wins, its rotation is refined
-        continuously on the sphere, and scale and translation are measured again at full resolution. With
-        ``refine=False`` every estimate is a soft arg-max, differentiable with respect to both inputs and the
-        temperatures. With ``alternatives=A`` up to ``A`` runner-up candidates come back as well, each with its own
-        full-resolution translation (:class:`Alternatives`).
+        :mod:`dpcn_med.geometry`. The stages: docs/design_notes/solver.md.
 
     References:
         Chen et al., "DPCN++: Differentiable Phase Correlation Network for Versatile Pose Registration", IEEE TPAMI
@@ -218,89 +340,35 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
     check_mode(mode)
     bandwidth = check_bandwidth(config.bandwidth, size)
     fixed_volume, moving_volume = fixed[:, 0], moving[:, 0]
-    batch = fixed.shape[0]
-
     clock = StageClock(fixed.device, config.profile)
-    bands = (config.sphere_band, *config.extra_sphere_bands)
     with clock("spectrum and sphere"):
-        directions = sphere_directions(bandwidth, device=fixed.device, dtype=fixed.dtype)
-        weights = quadrature_weights(bandwidth, device=fixed.device, dtype=fixed.dtype)
-        fixed_magnitude = magnitude_spectrum(fixed_volume, 3, config.taper)
-        moving_magnitude = magnitude_spectrum(moving_volume, 3, config.taper)
-        # (fixed, moving) spheres per band, the primary band first
-        spheres = [(_sphere(fixed_magnitude, band, config, directions, weights),
-                    _sphere(moving_magnitude, band, config, directions, weights)) for band in bands]
-        degrees = even_degrees(bandwidth)
-        fixed_coeffs = [sht(fixed_sphere, degrees) for fixed_sphere, _ in spheres]
-        moving_coeffs = [sht(moving_sphere, degrees) for _, moving_sphere in spheres]
+        spectra = _spectra(fixed_volume, moving_volume, bandwidth, config)
     with clock("so3 correlation"):
         correlations = [so3_correlation(moving_band, fixed_band, bandwidth)
-                        for fixed_band, moving_band in zip(fixed_coeffs, moving_coeffs)]
+                        for fixed_band, moving_band in zip(spectra.fixed_coeffs, spectra.moving_coeffs)]
     with clock("peaks"):
-        per_band = []  # (batch, K_b, 3, 3) candidates of each band
-        for correlation in correlations:
-            peak_rotation, _ = soft_argmax_so3(correlation, so3_peaks(correlation, config.peaks), temperatures.rotation,
-                                               half_width=config.rotation_half_width)
-            per_band.append(_with_half_turns(peak_rotation) if config.half_turns else peak_rotation)
+        per_band, origin = _rotation_peaks(correlations, config, temperatures.rotation)
         candidates = torch.cat(per_band, 1)
-        origin = torch.cat([torch.full((rotations.shape[1],), index, device=fixed.device)
-                            for index, rotations in enumerate(per_band)])  # (K,) the band each candidate came from
-    count = candidates.shape[1]
-
-    def scale_stage(rotation: Tensor) -> ScaleEstimate:
-        """Scale for ``(batch, K, 3, 3)`` rotations."""
-        return log_polar_scale(fixed_magnitude, moving_magnitude, rotation, config.scale_band, config.scale_radii,
-                               temperatures.scale, directions_bandwidth=config.scale_bandwidth,
-                               max_scale=config.max_scale, refine=config.refine, upsample=config.upsample)
-
     with clock("candidates"), torch.no_grad():
-        # Each candidate's sphere correlation in its own band, less that band's best: correlations of different
-        # bands are not comparable, their shortfalls from the best are.
-        sphere_score = torch.cat([score - score.amax(-1, keepdim=True) for score in (
-            sphere_correlation(moving_sphere, fixed_sphere, weights, directions, rotations)
-            for (fixed_sphere, moving_sphere), rotations in zip(spheres, per_band))], 1)
-        keep = deduplicate(candidates, sphere_score, math.radians(config.duplicate_degrees))
-        if mode == "similarity":
-            candidate_scale = scale_stage(candidates).scale
-        else:
-            candidate_scale = torch.ones(batch, count, device=fixed.device, dtype=fixed.dtype)
-        ranked, ranked_score = _rank_candidates(fixed_volume, moving_volume,
-                                                candidate_scale[..., None, None] * candidates, sphere_score, keep,
-                                                config)
-    rows = torch.arange(batch, device=fixed.device)
-    rotation = candidates[rows, ranked[:, 0]]
+        keep, candidate_scale, ranked, ranked_score = _resolve_candidates(
+            fixed_volume, moving_volume, spectra, per_band, candidates, mode, config, temperatures)
+    rotation = candidates[torch.arange(fixed.shape[0], device=fixed.device), ranked[:, 0]]
     alternatives = None
-    if config.alternatives > 0 and count > 1:  # one candidate (one peak, no half-turns) has no runner-up
+    if config.alternatives > 0 and candidates.shape[1] > 1:  # one candidate (one peak, no half-turns): no runner-up
         with clock("alternatives"), torch.no_grad():
-            others = ranked[:, 1:1 + config.alternatives]
-            rotations, scales = candidates[rows[:, None], others], candidate_scale[rows[:, None], others]
-            translations, estimate = _translation_stage(fixed_volume, moving, scales[..., None, None] * rotations,
-                                                        temperatures.translation, config, refine=True)
-            alternatives = Alternatives(rotation=rotations, scale=scales, translation=translations,
-                                        confidence=estimate.peak.mass.view(scales.shape),
-                                        score=ranked_score[:, 1:1 + config.alternatives])
+            alternatives = _alternatives(fixed_volume, moving, candidates, candidate_scale, ranked, ranked_score,
+                                         config, temperatures)
     if config.refine:  # inference only: a local search has no useful gradient, so build no graph for it
         with clock("rotation refinement"), torch.no_grad():
-            chosen_band = origin[ranked[:, 0]]  # (batch,): refined on the sphere of the band it came from
-            refined = rotation
-            for index in chosen_band.unique().tolist():
-                fine_sphere = isht(fixed_coeffs[index], degrees, bandwidth * config.refine_oversample)  # finely
-                candidate, _ = refine_rotation(spheres[index][1], fine_sphere, weights, directions, rotation[:, None],
-                                               step=math.pi / bandwidth, iterations=config.refine_iterations)
-                refined = torch.where((chosen_band == index)[:, None, None], candidate[:, 0], refined)
-            rotation = refined
-
+            rotation = _refine_chosen(spectra, rotation, origin[ranked[:, 0]], bandwidth, config)
     with clock("scale"):
-        scale_estimate = scale_stage(rotation[:, None]) if mode == "similarity" else None
-        scale = scale_estimate.scale[:, 0] if scale_estimate is not None else torch.ones(
-            batch, device=fixed.device, dtype=fixed.dtype)
+        scale_estimate, scale = _chosen_scale(spectra, rotation, mode, config, temperatures)
     with clock("translation"):
-        translation, translation_estimate = _translation_stage(fixed_volume, moving,
-                                                               (scale[:, None, None] * rotation)[:, None],
-                                                               temperatures.translation, config, config.refine)
-        translation = translation[:, 0]
-    rotation_log_prob = so3_log_prob(correlations[0], temperatures.rotation)  # the primary band's
-    return SolveResult(rotation=rotation, scale=scale, translation=translation,
-                       confidence=translation_estimate.peak.mass, rotation_log_prob=rotation_log_prob,
+        translation, translation_estimate = _translation_stage(
+            fixed_volume, moving, (scale[:, None, None] * rotation)[:, None], temperatures.translation, config,
+            config.refine)
+    return SolveResult(rotation=rotation, scale=scale, translation=translation[:, 0],
+                       confidence=translation_estimate.peak.mass,
+                       rotation_log_prob=so3_log_prob(correlations[0], temperatures.rotation),  # the primary band's
                        scale_estimate=scale_estimate, translation_estimate=translation_estimate,
                        candidates=keep.sum(-1), timings=clock.seconds, alternatives=alternatives)

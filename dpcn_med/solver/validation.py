@@ -12,12 +12,8 @@ from dpcn_med.errors import InputError
 MAX_BANDWIDTH = 128
 
 MIN_GRID_SIZE = {3: 16, 2: 32}
-"""Least grid size ``N`` per dimension: the least that still measured a pose, on 10 random poses (rotation uniform)
-of each of the seg3d MR, stroke T1, MNI and MRI-DIR CT. 3-D, rigid: no pose within 10 degrees at N = 8 (seg3d MR,
-median 51), a median of 14-34 degrees at 10 and up to 10-14 at 12 and 14 (3-9 of 10 within 10 degrees), 3.5-7.4 at
-16 (7-9 of 10), 2-6 at 20. 2-D (8 similarity poses of the first three's slices): the worst pose was 172-180 degrees
-off at 8, 82-119 at 12, 55 at 16, and 4.6 degrees but 9% in scale at 24; at 32 all were within 2.3 degrees and
-5.7%."""
+"""Least grid size ``N`` per dimension: the least that still measured a pose on real volumes (the measurements:
+docs/design_notes/solver.md)."""
 
 
 def check_grids(fixed: Tensor, moving: Tensor, dim: int) -> int:

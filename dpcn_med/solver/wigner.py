@@ -2,10 +2,8 @@
 
 Convention: ``d^l_mn(beta) = <l m| exp(-i beta J_y) |l n>``, so that ``D^l_mn(R) = exp(-i m alpha) d^l_mn(beta)
 exp(-i n gamma)`` for ``R = Rz(alpha) Ry(beta) Rz(gamma)``. Tables are computed in float64 on the target device, cast
-at the end, cached per ``(bandwidth, device, dtype)`` and never stored on disk.
-
-No maintained Python library we depend on ships Wigner-d tables for ``l`` up to 127 on torch devices, hence this
-module; it is checked against ``scipy.linalg.expm`` of the angular-momentum matrix in the tests.
+at the end, cached per ``(bandwidth, device, dtype)`` and never stored on disk (why a module of our own:
+docs/design_notes/solver.md).
 """
 
 from __future__ import annotations
@@ -113,8 +111,8 @@ def correlation_table(bandwidth: int, device: torch.device, dtype: torch.dtype) 
 
     Returns:
         ``((2M + 1)(M + 1), B, L)``, rows ``(m, n)`` for ``m = -M..M``, ``n = 0..M`` (``M`` the largest even degree
-        below ``B``), laid out for a batched matrix product over ``(m, n)``. About ``B^4`` entries: 3.6 MB at
-        B = 32, 62 MB at B = 64, 1.04 GB at B = 128 in float32 (the cache holds up to four tables).
+        below ``B``), laid out for a batched matrix product over ``(m, n)``: about ``B^4`` entries (sizes:
+        docs/design_notes/solver.md); the cache holds up to four tables.
     """
     degrees = even_degrees(bandwidth)
     top = max(degrees)

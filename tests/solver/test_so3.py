@@ -29,7 +29,7 @@ from dpcn_med.solver.so3 import (
 from dpcn_med.solver.sphere import quadrature_weights, sphere_directions
 from dpcn_med.solver.wigner import wigner_d
 from tests.conftest import TOLERANCE
-from tests.test_solver_harmonics import _random_real_coefficients
+from tests.solver.test_harmonics import _random_real_coefficients
 
 
 def _rotate_coefficients(coeffs: torch.Tensor, degrees: tuple[int, ...], rotation: torch.Tensor) -> torch.Tensor:
