@@ -37,7 +37,7 @@ from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
 from dpcn_med.io import write_csv
 from dpcn_med.preprocess import foreground_mask
-from dpcn_med.register import register
+from dpcn_med.registration import register
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from markdown import count_type, generated_by, publish, read_unique_rows, refuse_run_options  # noqa: E402  (the scripts' shared helpers)

@@ -38,7 +38,7 @@ from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.io import atomic_output, write_csv
 from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
-from dpcn_med.register import register
+from dpcn_med.registration import register
 from dpcn_med.solver import SolverConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -254,7 +254,7 @@ def register_pair(fixed: str, moving: str, output: Path, args: argparse.Namespac
         ``(exit code, report)``; input errors raise :class:`InputError` before anything is written.
     """
     from dpcn_med import io
-    from dpcn_med.register import register
+    from dpcn_med.registration import register
     from dpcn_med.report import overview_figure, registration_report
 
     _refuse_overwriting_inputs({p: "an input of this run" for p in (fixed, moving, fixed_mask, moving_mask)
@@ -425,7 +425,7 @@ def _model_identity(model: str) -> str | dict[str, str]:
     import hashlib
 
     from dpcn_med.models.weights import model_paths
-    from dpcn_med.register import LEARNING_FREE
+    from dpcn_med.registration import LEARNING_FREE
 
     if model.lower() in LEARNING_FREE:
         return "none"
@@ -466,7 +466,7 @@ def _earlier_report(folder: Path, request: dict, outputs: Sequence[str]) -> tupl
 
 def _register_batch(args: argparse.Namespace) -> int:
     from dpcn_med import io
-    from dpcn_med.register import check_options
+    from dpcn_med.registration import check_options
 
     pairs = _read_pairs(args.pairs)
     summary = args.output / "summary.csv"

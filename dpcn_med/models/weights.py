@@ -18,7 +18,7 @@ from dpcn_med import io
 from dpcn_med.arguments import shown
 from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.models.dpcn import DPCN, ModelConfig
-from dpcn_med.register import resolve_device
+from dpcn_med.registration import resolve_device
 
 FORMAT = "dpcn_med.model/1"
 """The JSON's ``format`` key and the weights' ``format`` metadata: what wrote them and how."""

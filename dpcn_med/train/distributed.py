@@ -9,7 +9,7 @@ import torch
 import torch.distributed as dist
 
 from dpcn_med.errors import InputError
-from dpcn_med.register import resolve_device
+from dpcn_med.registration import resolve_device
 
 
 @dataclass(frozen=True)

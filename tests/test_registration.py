@@ -26,7 +26,7 @@ from dpcn_med.preprocess import (
     resample_to_grid,
     to_tensor,
 )
-from dpcn_med.register import (
+from dpcn_med.registration import (
     Refinement,
     RegistrationResult,
     _merge_same_poses,
@@ -356,9 +356,7 @@ class TestLearnedModel:
     def test_a_non_finite_solution_is_refused(self, monkeypatch):
         from dataclasses import replace
 
-        import dpcn_med.register  # noqa: F401  (the package exports the function under the module's name)
-
-        module = sys.modules["dpcn_med.register"]
+        from dpcn_med import registration as module
         real = module.solve
         monkeypatch.setattr(module, "solve", lambda *args, **kwargs: replace(
             real(*args, **kwargs), confidence=torch.tensor([float("nan")])))
@@ -519,7 +517,7 @@ class TestStartup:
         script = (
             "import sys\n"
             "import numpy as np, SimpleITK as sitk\n"
-            "from dpcn_med.register import register\n"
+            "from dpcn_med.registration import register\n"
             "array = np.full((40, 40, 40), -1000, np.int16)\n"
             "array[8:30, 10:34, 12:28] = 40\n"
             "array[12:20, 14:22, 15:25] = 900\n"
