@@ -5,7 +5,7 @@ script measures, on poses where dpcn_med sometimes fails (the partial-field-of-v
 same poses for the same seed), how well that and the registration's other numbers separate failures (TRE of 2 mm or
 more) from successes:
 
-- ``confidence``: :attr:`dpcn_med.register.RegistrationResult.confidence`;
+- ``confidence``: :attr:`dpcn_med.RegistrationResult.confidence`;
 - ``overlap``: the share of the fixed foreground mapped inside the moving field of view;
 - ``mattes_mi``: Mattes mutual information at the result (SimpleITK's sign: lower is better);
 - ``nmi``: Studholme's normalised mutual information at the result, on the fixed foreground (in ``[1, 2]``, less

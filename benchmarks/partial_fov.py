@@ -134,7 +134,7 @@ ROW_FIELDS = {"case": str, "overlap": float, "trial": int, "method": str, "tre_m
 def run(case: str, overlaps: list[float], trials: int, seed: int, methods: list[str], baseline_trials: int,
         **settings) -> list[dict]:
     """One row per pose and method of one case: ``case``, ``overlap``, ``trial``, ``method``, ``tre_mm``,
-    ``seconds``. ``settings`` go to :func:`dpcn_med.register.register` for ``"dpcn"``; the other methods (keys of
+    ``seconds``. ``settings`` go to :func:`dpcn_med.register` for ``"dpcn"``; the other methods (keys of
     :data:`dpcn_med.benchmark.METHODS`) run on the first ``baseline_trials`` poses."""
     fixed_whole, moving_whole = case_images(case)
     rows = []

@@ -1,9 +1,16 @@
 """The public registration API: two volumes (files or SimpleITK images) in, a physical transform out.
 
-``register`` reads and checks the inputs (:mod:`dpcn_med.io`), normalises them and resamples both onto canonical
-cubes with one shared spacing (:mod:`dpcn_med.preprocess`), solves for the pose globally with the DPC solver
-(:mod:`dpcn_med.solver`), turns it into an ITK transform (:func:`dpcn_med.geometry.physical_transform`) and, by
-default, polishes it locally with SimpleITK's Mattes mutual information.
+:func:`register` checks its arguments and options, then runs five steps:
+
+1. read the inputs: the images and masks, checked as files are (:mod:`dpcn_med.io`);
+2. prepare the grids: normalise both images and resample them onto canonical cubes with one shared spacing
+   (:mod:`dpcn_med.preprocess`);
+3. global candidates: solve for the pose over all of SO(3) with the DPC solver (:mod:`dpcn_med.solver`) or a learned
+   model, each candidate turned into an ITK transform (:func:`dpcn_med.geometry.physical_transform`), the stored pose
+   last;
+4. choose and refine: by default, polish the candidates locally with SimpleITK's Mattes mutual information and keep
+   the best (:mod:`dpcn_med.refine`);
+5. the result: overlap, resampled image, confidence (:class:`RegistrationResult`).
 """
 
 from __future__ import annotations
@@ -11,8 +18,9 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,9 +29,9 @@ import SimpleITK as sitk
 import torch
 
 from dpcn_med import io
-from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequence, shown
+from dpcn_med.arguments import check_flag, check_integer, shown
+from dpcn_med.devices import resolve_device
 from dpcn_med.errors import InputError
-from dpcn_med.evaluation import target_registration_error
 from dpcn_med.geometry import (
     CanonicalGrid,
     homogeneous_matrix,
@@ -34,14 +42,23 @@ from dpcn_med.geometry import (
 )
 from dpcn_med.preprocess import (
     MODALITIES,
+    PreparedImage,
     Preprocessing,
-    clip_outliers,
     pair_grids,
     prepare,
     resample_to_grid,
     to_tensor,
 )
+from dpcn_med.refine import (
+    MIN_LEVEL_VOXELS,
+    Choice,
+    Refinement,
+    check_mask_extent,
+    choose_and_refine,
+    metric_masks,
+)
 from dpcn_med.solver import SolverConfig, StageTemperatures, solve
+from dpcn_med.solver.config import DEFAULT_BANDWIDTH
 from dpcn_med.solver.translation import phase_translation
 from dpcn_med.solver.validation import check_grid_bandwidth, check_mode
 
@@ -51,87 +68,6 @@ if TYPE_CHECKING:
 ImageLike = str | os.PathLike | sitk.Image
 Progress = Callable[[str, float], None]
 """``progress(stage, fraction)``: the stage's name and the fraction of the whole job done, in ``[0, 1]``."""
-
-
-@dataclass(frozen=True)
-class Refinement:
-    """Settings of the local Mattes mutual-information refinement (SimpleITK), defined once.
-
-    Attributes:
-        shrink_factors: image pyramid, coarse to fine (integers >= 1).
-        smoothing_mm: Gaussian sigma per level, mm (>= 0, one per shrink factor).
-        samples: random metric samples per level (capped at every voxel), at least 1000.
-        histogram_bins: Mattes histogram bins, at least 8.
-        iterations: optimiser iterations per level, at least 1.
-        max_step_mm: largest first step of the regular-step gradient descent at the coarsest level, as a physical
-            shift in mm (> 0), or ``None`` (default) for half the finest voxel spacing of the fixed image's coarsest
-            level (:func:`first_step_mm`): 4 mm for a 2 mm image shrunk 4 times, 2 mm for a 1 mm one. A fixed 2 mm
-            left two MNI pseudo-CT poses of the benchmark (2 mm voxels, 8 mm at the coarsest level) in a local
-            optimum 16 mm off or on the half-turn twin; a fixed 4 mm took a 24 mm object in 4 mm voxels to a pose
-            turned by 90 degrees (docs/registration.md, step 6). In :func:`refine_candidates` each finer level starts
-            at this times its shrink factor over the coarsest one's (4, 2, 1 mm for the 2 mm image): started at 2 mm
-            from 0.65 mm off, the full-resolution level of a 1 mm MRI-DIR CT pose jumped to another optimum 1.9 mm
-            off. :func:`refine_transform`, one SimpleITK run over the levels, starts each at this step.
-        mask_margin_voxels: the fixed foreground, dilated by this many (preprocessing) voxels, is where the metric is
-            sampled when the user gives no fixed mask.
-        starts: global candidates refined: the solver's choice and up to ``starts - 1`` runner-ups (1: its choice
-            only). Every one runs the coarsest pyramid level (:func:`refine_candidates`), about 0.1 s each. Two sphere
-            bands leave 2-16 plausible candidates on the MNI heads, and across modalities the translation peak that
-            ranks them is low for all: on 4 of 60 MNI pseudo-CT poses the right one ranked 9th to 13th, so all of
-            them run.
-        survivors: how many of them (at least 1) go on to each next level, by their metric (the last value holds for
-            the rest).
-        stored_start: the stored pose (identity) is one more start, after the solver's candidates: inputs already
-            roughly aligned (one scanner frame, or aligned by hand) stay aligned where phase correlation misses (a
-            coronal slab of a head registered onto the whole head as stored came back 85-167 mm off, the stored
-            pose refined was right). Where the stored pose leaves no overlap (unrelated scanner frames) it is dropped
-            before any work, like any candidate.
-        seed: sampling seed in ``[1, 2**32 - 1]`` (the same inputs give the same result; SimpleITK takes 0 for
-            ``sitkWallClock``, a new seed on every run).
-
-    Raises:
-        InputError: a value of the wrong type or out of range, named with its value (3 or 5 histogram bins left the
-            mutual information flat, about 1e-13, and an MNI head pose 230 mm off came back as refined).
-    """
-
-    shrink_factors: tuple[int, ...] = (4, 2, 1)
-    smoothing_mm: tuple[float, ...] = (2.0, 1.0, 0.0)
-    samples: int = 30_000
-    histogram_bins: int = 32
-    iterations: int = 100
-    max_step_mm: float | None = None
-    mask_margin_voxels: int = 3
-    starts: int = 16
-    survivors: tuple[int, ...] = (2, 1)
-    stored_start: bool = True
-    seed: int = 20261123
-
-    def __post_init__(self) -> None:
-        factors = tuple(check_integer(f"shrink_factors[{level}]", factor, minimum=1)
-                        for level, factor in enumerate(check_sequence("shrink_factors", self.shrink_factors)))
-        smoothing = check_sequence("smoothing_mm", self.smoothing_mm)
-        if len(smoothing) != len(factors):
-            raise InputError(f"smoothing_mm is {self.smoothing_mm!r}: {len(smoothing)} values; expected "
-                             f"{len(factors)}, one per level of shrink_factors {factors}")
-        checked = {
-            "shrink_factors": factors,
-            "smoothing_mm": tuple(check_real(f"smoothing_mm[{level}]", sigma, minimum=0)
-                                  for level, sigma in enumerate(smoothing)),
-            "samples": check_integer("samples", self.samples, minimum=1000),
-            "histogram_bins": check_integer("histogram_bins", self.histogram_bins, minimum=8),
-            "iterations": check_integer("iterations", self.iterations, minimum=1),
-            "max_step_mm": None if self.max_step_mm is None else check_real("max_step_mm", self.max_step_mm,
-                                                                             minimum=0, above=True),
-            "mask_margin_voxels": check_integer("mask_margin_voxels", self.mask_margin_voxels, minimum=0),
-            "starts": check_integer("starts", self.starts, minimum=1),
-            "survivors": tuple(check_integer(f"survivors[{level}]", count, minimum=1)
-                               for level, count in enumerate(check_sequence("survivors", self.survivors))),
-            "stored_start": check_flag("stored_start", self.stored_start),
-            # SimpleITK's seed is an unsigned 32-bit integer, and 0 is sitkWallClock: a new seed on every run.
-            "seed": check_integer("seed", self.seed, minimum=1, maximum=2 ** 32 - 1),
-        }
-        for name, value in checked.items():
-            object.__setattr__(self, name, value)
 
 
 @dataclass
@@ -148,10 +84,10 @@ class RegistrationResult:
             when ``start`` is ``"stored pose"``.
         confidence: the solver's confidence in that start, in ``[0, 1]``: the mass of its translation peak (for the
             stored pose, of the translation correlation at the stored orientation, :func:`stored_pose_confidence`).
-        candidate: which start that is, chosen by :func:`refine_candidates`: 0 for the solver's own choice, ``k``
-            for its ``k``-th runner-up; the stored pose is the last (``len(candidate_metrics) - 1``).
+        candidate: which start that is, chosen by :func:`dpcn_med.refine.refine_candidates`: 0 for the solver's own
+            choice, ``k`` for its ``k``-th runner-up; the stored pose is the last (``len(candidate_metrics) - 1``).
         start: ``"phase correlation"`` (one of the solver's candidates) or ``"stored pose"``
-            (:attr:`Refinement.stored_start`).
+            (:attr:`dpcn_med.refine.Refinement.stored_start`).
         candidate_metrics: each start's metric after the coarsest refinement level, on that level's images (empty
             without refinement), in the order of ``candidate``.
         mode: ``"rigid"`` or ``"similarity"``.
@@ -212,10 +148,6 @@ class RegistrationResult:
         }
 
 
-DEFAULT_BANDWIDTH = 32
-"""The learning-free solver's bandwidth when none is given: fast on a CPU."""
-
-
 def check_options(*, mode: str, model: str | os.PathLike | None, bandwidth: int | None, device: str | torch.device,
                   fixed_modality: str, moving_modality: str
                   ) -> tuple[str, int, torch.device, DPCN | None]:
@@ -253,31 +185,6 @@ def describe_transform(fixed_to_moving: sitk.Transform) -> dict:
             "fixed_parameters": list(fixed_to_moving.GetFixedParameters()),
             "fixed_to_moving_lps": matrix.tolist(), "rotation_degrees": angle, "scale": scale,
             "translation_mm": matrix[:3, 3].tolist()}
-
-
-def resolve_device(device: str | torch.device) -> torch.device:
-    """``"auto"`` (CUDA when available, else CPU), ``"cpu"``, ``"cuda"`` or ``"cuda:N"`` (or a ``torch.device``).
-
-    Raises:
-        InputError: not a string or ``torch.device``, an unknown device, or a CUDA GPU this machine does not have.
-    """
-    if not isinstance(device, (str, torch.device)):
-        raise InputError(f"device is {shown(device)}; expected auto, cpu, cuda or cuda:N (or a torch.device)")
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        resolved = torch.device(device)
-    except RuntimeError as error:
-        raise InputError(f"device {device!r} is not valid; use auto, cpu, cuda or cuda:N") from error
-    if resolved.type == "cuda" and not torch.cuda.is_available():
-        raise InputError(f"device {device!r} asked for, but this torch build sees no CUDA GPU; use --device cpu")
-    if resolved.type not in ("cpu", "cuda"):
-        raise InputError(f"device {device!r} is not supported; use auto, cpu, cuda or cuda:N")
-    if resolved.type == "cuda" and resolved.index is not None and resolved.index >= torch.cuda.device_count():
-        count = torch.cuda.device_count()
-        raise InputError(f"device {device!r} asked for, but this machine has {count} CUDA GPU"
-                         f"{'s' if count > 1 else ''}; use cuda:0{f' to cuda:{count - 1}' if count > 1 else ''}")
-    return resolved
 
 
 def _check_image_like(name: str, value: object) -> None:
@@ -321,29 +228,6 @@ def _load_mask(source: ImageLike | None, image: sitk.Image, role: str) -> sitk.I
     if isinstance(source, sitk.Image):
         return io.check_mask(source, image, _mask_name(source, role), role=role)
     return io.read_mask(source, image, role=role)
-
-
-def _check_mask_extent(mask: sitk.Image | None, name: str, settings: Refinement) -> None:
-    """Refuse a mask too small for the refinement: its box must span :data:`MIN_LEVEL_VOXELS` voxels of the coarsest
-    pyramid level along each axis, as every level's images do (measured on the 2 mm MNI head: ITK's metric failed on
-    masks 1 to 5 voxels wide; the solver alone, on masks that small, came out 150-220 mm off with confidence under
-    0.002)."""
-    if mask is None:
-        return
-    statistics = sitk.LabelShapeStatisticsImageFilter()
-    statistics.Execute(sitk.Cast(mask > 0, sitk.sitkUInt8))
-    box = np.asarray(statistics.GetBoundingBox(1)[3:])  # io.check_mask refused an empty mask
-    needed = MIN_LEVEL_VOXELS * np.asarray(level_factors(mask.GetSize(), settings.shrink_factors[0]))
-    if (box < needed).any():
-        spacing = np.asarray(mask.GetSpacing())
-        raise InputError(f"{name}: too small to refine: its box is {_mm(box * spacing)} mm; the refinement needs at "
-                         f"least {_mm(needed * spacing)} mm ({MIN_LEVEL_VOXELS} voxels of its coarsest level along "
-                         "each axis); give a larger mask, or register without refinement (refine=False, "
-                         "--no-refine), whose confidence then says whether the mask held enough")
-
-
-def _mm(lengths: np.ndarray) -> str:
-    return " x ".join(f"{length:g}" for length in np.round(lengths, 1))
 
 
 def _mask_name(source: ImageLike | None, role: str) -> str:
@@ -408,7 +292,7 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         resample: also return the moving image resampled on the fixed grid.
         preprocessing: canonical-grid and intensity settings (default :class:`Preprocessing`, or the learned
             model's own).
-        refinement: refinement settings (default :class:`Refinement`).
+        refinement: refinement settings (default :class:`dpcn_med.refine.Refinement`).
         solver: settings of the learning-free solver (default :class:`dpcn_med.solver.SolverConfig`; its bandwidth
             and alternatives are set from ``bandwidth`` and ``refinement``); a learned model carries its own.
         progress: called with ``(stage, fraction done)`` as the work advances.
@@ -421,10 +305,42 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
         InputError: unreadable or unusable inputs, masks or options, or an argument of the wrong type; the message
             names the file or the argument and the problem.
     """
-    for name, value in (("fixed", fixed), ("moving", moving)):
-        _check_image_like(name, value)
-    for name, value in (("fixed_mask", fixed_mask), ("moving_mask", moving_mask)):
-        if value is not None:
+    options = _options(mode=mode, model=model, bandwidth=bandwidth, refine=refine, device=device,
+                       modalities=(fixed_modality, moving_modality), resample=resample, preprocessing=preprocessing,
+                       refinement=refinement, solver=solver, progress=progress,
+                       images={"fixed": fixed, "moving": moving, "fixed_mask": fixed_mask, "moving_mask": moving_mask})
+    clock = _Clock(progress)
+    inputs = _read_inputs(fixed, moving, fixed_mask, moving_mask, clock)
+    grids = _prepare_grids(inputs, options, clock)
+    starts = _global_candidates(grids, options, clock)
+    choice = _choose_and_refine(inputs, grids, starts, options, clock)
+    return _result(inputs, grids, starts, choice, options, clock)
+
+
+@dataclass(frozen=True)
+class _Options:
+    """:func:`register`'s options, checked and resolved (the device, the bandwidth, the model loaded)."""
+
+    mode: str
+    bandwidth: int
+    device: torch.device
+    network: DPCN | None
+    model: str | os.PathLike | None
+    modalities: tuple[str, str]
+    refine: bool
+    resample: bool
+    preprocessing: Preprocessing
+    refinement: Refinement
+    solver: SolverConfig | None
+
+
+def _options(*, mode: str, model: str | os.PathLike | None, bandwidth: int | None, refine: bool, device: str,
+             modalities: tuple[str, str], resample: bool, preprocessing: Preprocessing | None,
+             refinement: Refinement | None, solver: SolverConfig | None, progress: Progress | None,
+             images: dict[str, ImageLike | None]) -> _Options:
+    """Every argument of :func:`register` checked, in its order, before any work; the model loaded."""
+    for name, value in images.items():
+        if value is not None or name in ("fixed", "moving"):
             _check_image_like(name, value)
     refine, resample = check_flag("refine", refine), check_flag("resample", resample)
     _check_settings("preprocessing", preprocessing, Preprocessing)
@@ -432,130 +348,208 @@ def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model:
     _check_settings("solver", solver, SolverConfig)
     if progress is not None and not callable(progress):
         raise InputError(f"progress is {shown(progress)}; expected a function progress(stage, fraction) or None")
-    report = progress or (lambda stage, fraction: None)
-    refinement = refinement or Refinement()
     mode, bandwidth, torch_device, network = check_options(mode=mode, model=model, bandwidth=bandwidth, device=device,
-                                                           fixed_modality=fixed_modality,
-                                                           moving_modality=moving_modality)
+                                                           fixed_modality=modalities[0],
+                                                           moving_modality=modalities[1])
     if network is not None and solver is not None:
         raise InputError(f"{model}: a learned model carries its own solver settings; pass solver= only without one")
     # A learned model saw grids made one way in training; it gets the same unless the caller says otherwise.
     preprocessing = preprocessing or (network.config.grid_preprocessing() if network is not None else Preprocessing())
-    timings: dict[str, float] = {}
+    return _Options(mode=mode, bandwidth=bandwidth, device=torch_device, network=network, model=model,
+                    modalities=modalities, refine=refine, resample=resample, preprocessing=preprocessing,
+                    refinement=refinement or Refinement(), solver=solver)
 
-    start = time.perf_counter()
-    report("reading", 0.0)
-    fixed_image, moving_image = load_image(fixed, "fixed image"), load_image(moving, "moving image")
-    fixed_mask_image = _load_mask(fixed_mask, fixed_image, "fixed mask")
-    moving_mask_image = _load_mask(moving_mask, moving_image, "moving mask")
-    timings["read"] = time.perf_counter() - start
 
-    start = time.perf_counter()
-    report("preprocessing", 0.1)
-    size = 2 * bandwidth
-    fixed_prepared = prepare(fixed_image, modality=fixed_modality, mask=fixed_mask_image, config=preprocessing,
-                             mask_name=_mask_name(fixed_mask, "fixed mask"))
-    moving_prepared = prepare(moving_image, modality=moving_modality, mask=moving_mask_image, config=preprocessing,
-                              mask_name=_mask_name(moving_mask, "moving mask"))
-    if refine:
-        for source, mask, role in ((fixed_mask, fixed_mask_image, "fixed mask"),
-                                   (moving_mask, moving_mask_image, "moving mask")):
-            _check_mask_extent(mask, _mask_name(source, role), refinement)
-    if network is not None:
-        _check_model_modalities(model, network, (fixed_modality, moving_modality),
-                                (fixed_prepared.modality, moving_prepared.modality))
-    fixed_grid, moving_grid = pair_grids(fixed_prepared, moving_prepared, size, preprocessing)
-    fixed_tensor = to_tensor(resample_to_grid(fixed_prepared.image, fixed_grid)).to(torch_device)
-    moving_tensor = to_tensor(resample_to_grid(moving_prepared.image, moving_grid)).to(torch_device)
-    timings["preprocess"] = time.perf_counter() - start
+class _Clock:
+    """The wall-clock seconds of each step of one registration, and its progress callback."""
 
-    start = time.perf_counter()
-    report("solving", 0.3)
-    runner_ups = refinement.starts - 1 if refine else 0  # only a local search can tell them apart (see Refinement)
-    if network is None:
-        solution = solve(fixed_tensor, moving_tensor, mode, config=solver, bandwidth=bandwidth, profile=True,
-                         alternatives=runner_ups)
-        timings.update({f"solver.{stage}": seconds for stage, seconds in solution.timings.items()})
-        alternatives = solution.alternatives
-    else:
-        with torch.no_grad():
-            try:
-                solution = network(fixed_tensor, moving_tensor, mode=mode, alternatives=runner_ups)
-            except InputError as error:  # features that overflow: the model's fault, not the images'
-                raise InputError(f"{model}: {error}") from None
-        alternatives = solution.stage.alternatives
-    timings["solve"] = time.perf_counter() - start
+    def __init__(self, progress: Progress | None) -> None:
+        self.report: Progress = progress or (lambda stage, fraction: None)
+        self.timings: dict[str, float] = {}
+
+    @contextmanager
+    def step(self, key: str, stage: str, fraction: float) -> Iterator[None]:
+        """Time the block under ``timings[key]`` (only if it ends without an error), reporting ``stage`` first."""
+        start = time.perf_counter()
+        self.report(stage, fraction)
+        yield
+        self.timings[key] = time.perf_counter() - start
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """Step 1's images and masks as read, and the masks' names for messages (:func:`_mask_name`)."""
+
+    fixed: sitk.Image
+    moving: sitk.Image
+    fixed_mask: sitk.Image | None
+    moving_mask: sitk.Image | None
+    fixed_mask_name: str
+    moving_mask_name: str
+
+
+def _read_inputs(fixed: ImageLike, moving: ImageLike, fixed_mask: ImageLike | None, moving_mask: ImageLike | None,
+                 clock: _Clock) -> _Inputs:
+    """Step 1: read and check both images, then both masks."""
+    with clock.step("read", "reading", 0.0):
+        fixed_image, moving_image = load_image(fixed, "fixed image"), load_image(moving, "moving image")
+        return _Inputs(fixed=fixed_image, moving=moving_image,
+                       fixed_mask=_load_mask(fixed_mask, fixed_image, "fixed mask"),
+                       moving_mask=_load_mask(moving_mask, moving_image, "moving mask"),
+                       fixed_mask_name=_mask_name(fixed_mask, "fixed mask"),
+                       moving_mask_name=_mask_name(moving_mask, "moving mask"))
+
+
+@dataclass(frozen=True)
+class _Grids:
+    """Step 2's prepared images, their canonical grids, and the images on them as ``(1, 1, N, N, N)`` tensors on the
+    solver's device."""
+
+    fixed: PreparedImage
+    moving: PreparedImage
+    fixed_grid: CanonicalGrid
+    moving_grid: CanonicalGrid
+    fixed_tensor: torch.Tensor
+    moving_tensor: torch.Tensor
+
+
+def _prepare_grids(inputs: _Inputs, options: _Options, clock: _Clock) -> _Grids:
+    """Step 2: normalise both images (and refuse masks too small to refine, or modalities the model was not trained
+    for), then resample them onto canonical cubes of ``2B`` voxels with one shared spacing."""
+    with clock.step("preprocess", "preprocessing", 0.1):
+        fixed = prepare(inputs.fixed, modality=options.modalities[0], mask=inputs.fixed_mask,
+                        config=options.preprocessing, mask_name=inputs.fixed_mask_name)
+        moving = prepare(inputs.moving, modality=options.modalities[1], mask=inputs.moving_mask,
+                         config=options.preprocessing, mask_name=inputs.moving_mask_name)
+        if options.refine:
+            check_mask_extent(inputs.fixed_mask, inputs.fixed_mask_name, options.refinement)
+            check_mask_extent(inputs.moving_mask, inputs.moving_mask_name, options.refinement)
+        if options.network is not None:
+            _check_model_modalities(options.model, options.network, options.modalities,
+                                    (fixed.modality, moving.modality))
+        fixed_grid, moving_grid = pair_grids(fixed, moving, 2 * options.bandwidth, options.preprocessing)
+        return _Grids(fixed=fixed, moving=moving, fixed_grid=fixed_grid, moving_grid=moving_grid,
+                      fixed_tensor=to_tensor(resample_to_grid(fixed.image, fixed_grid)).to(options.device),
+                      moving_tensor=to_tensor(resample_to_grid(moving.image, moving_grid)).to(options.device))
+
+
+@dataclass(frozen=True)
+class _Starts:
+    """Step 3's starts for the refinement: ``(fixed_to_moving, confidence)``, the solver's choice first, then its
+    runner-ups; ``stored`` is the stored pose's index, when it is a start (its confidence, ``None`` here, is measured
+    only if it wins: with a model, that takes two UNet passes)."""
+
+    candidates: list[tuple[sitk.Transform, float | None]]
+    stored: int | None
+
+    @property
+    def transforms(self) -> list[sitk.Transform]:
+        return [transform for transform, _ in self.candidates]
+
+
+def _global_candidates(grids: _Grids, options: _Options, clock: _Clock) -> _Starts:
+    """Step 3: the solver's (or the model's) global candidates as physical transforms, and the stored pose after
+    them when it is a start.
+
+    Raises:
+        InputError: a pose or confidence that is not finite.
+    """
+    with clock.step("solve", "solving", 0.3):
+        solution, alternatives = _solve(grids, options, clock.timings)
     if not all(torch.isfinite(value[0]).all() for value in (solution.rotation, solution.scale, solution.translation,
                                                             solution.confidence)):
-        raise _non_finite(model if network is not None else None)
-    candidates = [(physical_transform(solution.rotation[0], float(solution.scale[0]) if mode == "similarity" else None,
-                                      solution.translation[0], fixed_grid, moving_grid),
-                   float(solution.confidence[0]))]
+        raise _non_finite(options.model if options.network is not None else None)
+
+    def fixed_to_moving(rotation: torch.Tensor, scale: torch.Tensor, translation: torch.Tensor) -> sitk.Transform:
+        return physical_transform(rotation, float(scale) if options.mode == "similarity" else None, translation,
+                                  grids.fixed_grid, grids.moving_grid)
+
+    candidates: list[tuple[sitk.Transform, float | None]] = [
+        (fixed_to_moving(solution.rotation[0], solution.scale[0], solution.translation[0]),
+         float(solution.confidence[0]))]
     if alternatives is not None:
-        candidates += [(physical_transform(alternatives.rotation[0, k],
-                                           float(alternatives.scale[0, k]) if mode == "similarity" else None,
-                                           alternatives.translation[0, k], fixed_grid, moving_grid),
-                        float(alternatives.confidence[0, k]))
+        candidates += [(fixed_to_moving(alternatives.rotation[0, k], alternatives.scale[0, k],
+                                        alternatives.translation[0, k]), float(alternatives.confidence[0, k]))
                        for k in range(alternatives.score.shape[1]) if alternatives.score[0, k] > float("-inf")]
-    stored = len(candidates) if refine and refinement.stored_start else None  # the stored pose's index
-    if stored is not None:  # its confidence is measured only if it wins (with a model, two UNet passes)
-        candidates.append((similarity_transform(np.eye(4), np.asarray(fixed_grid.centre), rigid=mode == "rigid"),
-                           None))
+    stored = len(candidates) if options.refine and options.refinement.stored_start else None
+    if stored is not None:
+        candidates.append((similarity_transform(np.eye(4), np.asarray(grids.fixed_grid.centre),
+                                                rigid=options.mode == "rigid"), None))
+    return _Starts(candidates=candidates, stored=stored)
 
-    metric: dict[str, float | None] = {"stored": None, "dpc": None, "refined": None}
-    chosen, candidate_metrics = 0, []
-    final, refined = candidates[0][0], False
-    if refine:
-        start = time.perf_counter()
-        report("refining", 0.4)
-        # Without a user mask, sample the metric on the fixed foreground (a few mm wider): background air otherwise
-        # dominates the joint histogram.
-        sampled = fixed_mask_image if fixed_mask_image is not None else sitk.BinaryDilate(
-            fixed_prepared.foreground, [refinement.mask_margin_voxels] * 3)
-        masks = (sampled, moving_mask_image)
-        # The metric's histogram spans each image's range: 8 hot voxels at 300 times the maximum squeezed the anatomy
-        # into its first bin and took a right pose 247 mm off.
-        fixed_values, moving_values = clip_outliers(fixed_image), clip_outliers(moving_image)
-        metric["stored"] = mattes_metric(fixed_values, moving_values, sitk.Transform(3, sitk.sitkIdentity), masks,
-                                         refinement)
-        pyramid = image_pyramid(fixed_values, moving_values, refinement)
-        chosen, candidate, candidate_metrics = refine_candidates(
-            pyramid, [transform for transform, _ in candidates], masks, refinement,
-            lambda fraction: report("refining", 0.4 + 0.5 * fraction))
-        final = candidates[chosen][0]
-        metric["dpc"] = mattes_metric(fixed_values, moving_values, final, masks, refinement)
-        if metric["dpc"] is not None and candidate is not None:
-            metric["refined"] = mattes_metric(fixed_values, moving_values, candidate, masks, refinement)
-            # The local optimiser only ever starts from a global estimate; keep it only if it improved the metric.
-            if metric["refined"] is not None and metric["refined"] <= metric["dpc"]:
-                final, refined = candidate, True
-        timings["refine"] = time.perf_counter() - start
 
-    overlap = field_of_view_overlap(fixed_prepared.foreground, moving_image, final)
-    resampled = None
-    if resample:
-        start = time.perf_counter()
-        report("resampling", 0.9)
-        resampled = resample_moving(fixed_image, moving_image, final)
-        timings["resample"] = time.perf_counter() - start
-    confidence = candidates[chosen][1]
-    if chosen == stored:
+def _solve(grids: _Grids, options: _Options, timings: dict[str, float]) -> tuple:
+    """The global solve on the canonical grids: ``(solution, alternatives)``, the solver's
+    :class:`~dpcn_med.solver.SolveResult` (or the model's result) and its runner-ups
+    (:class:`~dpcn_med.solver.Alternatives`, or ``None``); the learning-free solver's stage timings go into
+    ``timings`` as ``solver.*``."""
+    # Runner-ups only where a local search can tell them apart (Refinement.starts).
+    runner_ups = options.refinement.starts - 1 if options.refine else 0
+    if options.network is None:
+        solution = solve(grids.fixed_tensor, grids.moving_tensor, options.mode, config=options.solver,
+                         bandwidth=options.bandwidth, profile=True, alternatives=runner_ups)
+        timings.update({f"solver.{stage}": seconds for stage, seconds in solution.timings.items()})
+        return solution, solution.alternatives
+    with torch.no_grad():
         try:
-            confidence = stored_pose_confidence(fixed_tensor, moving_tensor, network, solver)
-        except InputError as error:
-            raise InputError(f"{model}: {error}") from None
-    if not math.isfinite(confidence):
-        raise _non_finite(model if network is not None else None)
-    report("done", 1.0)
+            solution = options.network(grids.fixed_tensor, grids.moving_tensor, mode=options.mode,
+                                       alternatives=runner_ups)
+        except InputError as error:  # features that overflow: the model's fault, not the images'
+            raise InputError(f"{options.model}: {error}") from None
+    return solution, solution.stage.alternatives
+
+
+def _choose_and_refine(inputs: _Inputs, grids: _Grids, starts: _Starts, options: _Options, clock: _Clock) -> Choice:
+    """Step 4: the refinement's choice among the starts (:func:`dpcn_med.refine.choose_and_refine`); without
+    refinement, the solver's own choice as it is."""
+    if not options.refine:
+        return Choice(index=0, fixed_to_moving=starts.candidates[0][0], refined=False,
+                      metric={"stored": None, "dpc": None, "refined": None}, candidate_metrics=[])
+    with clock.step("refine", "refining", 0.4):
+        masks = metric_masks(inputs.fixed_mask, grids.fixed.foreground, inputs.moving_mask, options.refinement)
+        return choose_and_refine(inputs.fixed, inputs.moving, starts.transforms, masks, options.refinement,
+                                 lambda fraction: clock.report("refining", 0.4 + 0.5 * fraction))
+
+
+def _result(inputs: _Inputs, grids: _Grids, starts: _Starts, choice: Choice, options: _Options,
+            clock: _Clock) -> RegistrationResult:
+    """Step 5: the overlap, the resampled image when asked for, the confidence in the start kept, and the result."""
+    fixed_to_moving = choice.fixed_to_moving
+    overlap = field_of_view_overlap(grids.fixed.foreground, inputs.moving, fixed_to_moving)
+    resampled = None
+    if options.resample:
+        with clock.step("resample", "resampling", 0.9):
+            resampled = resample_moving(inputs.fixed, inputs.moving, fixed_to_moving)
+    confidence = _start_confidence(grids, starts, choice.index, options)
+    clock.report("done", 1.0)
     return RegistrationResult(
-        fixed_to_moving=final, moving_to_fixed=final.GetInverse(), dpc_transform=candidates[chosen][0],
-        confidence=confidence, candidate=chosen,
-        start="stored pose" if chosen == stored else "phase correlation", candidate_metrics=candidate_metrics,
-        mode=mode, bandwidth=bandwidth, fixed_grid=fixed_grid, moving_grid=moving_grid,
-        modalities=(fixed_prepared.modality, moving_prepared.modality), metric=metric,
-        refined=refined, overlap=overlap, timings=timings, device=str(torch_device),
-        model="learning-free" if network is None else os.fspath(model), fixed_image=fixed_image,
-        moving_image=moving_image, resampled=resampled)
+        fixed_to_moving=fixed_to_moving, moving_to_fixed=fixed_to_moving.GetInverse(),
+        dpc_transform=starts.candidates[choice.index][0], confidence=confidence, candidate=choice.index,
+        start="stored pose" if choice.index == starts.stored else "phase correlation",
+        candidate_metrics=choice.candidate_metrics, mode=options.mode, bandwidth=options.bandwidth,
+        fixed_grid=grids.fixed_grid, moving_grid=grids.moving_grid,
+        modalities=(grids.fixed.modality, grids.moving.modality), metric=choice.metric, refined=choice.refined,
+        overlap=overlap, timings=clock.timings, device=str(options.device),
+        model="learning-free" if options.network is None else os.fspath(options.model),
+        fixed_image=inputs.fixed, moving_image=inputs.moving, resampled=resampled)
+
+
+def _start_confidence(grids: _Grids, starts: _Starts, chosen: int, options: _Options) -> float:
+    """The solver's confidence in the start kept; for the stored pose, measured now (:func:`stored_pose_confidence`).
+
+    Raises:
+        InputError: a confidence that is not finite, or features of the model that overflow.
+    """
+    confidence = starts.candidates[chosen][1]
+    if chosen == starts.stored:
+        try:
+            confidence = stored_pose_confidence(grids.fixed_tensor, grids.moving_tensor, options.network,
+                                                options.solver)
+        except InputError as error:
+            raise InputError(f"{options.model}: {error}") from None
+    if not math.isfinite(confidence):
+        raise _non_finite(options.model if options.network is not None else None)
+    return confidence
 
 
 def _check_model_modalities(model: str | os.PathLike, network: DPCN, given: tuple[str, str],
@@ -627,239 +621,10 @@ def field_of_view_overlap(fixed_foreground: sitk.Image, moving: sitk.Image, fixe
 
 def resample_moving(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform) -> sitk.Image:
     """The moving image on the fixed grid (linear), its pixel type kept (integers rounded to the nearest, not
-    truncated towards zero: that biased an int16 CT by up to 0.9 HU), outside filled with its minimum."""
+    truncated towards zero), outside filled with its minimum."""
     background = float(sitk.GetArrayViewFromImage(moving).min())
     pixel = moving.GetPixelID()
     if pixel in (sitk.sitkFloat32, sitk.sitkFloat64):
         return sitk.Resample(moving, fixed, fixed_to_moving, sitk.sitkLinear, background, pixel)
     resampled = sitk.Resample(moving, fixed, fixed_to_moving, sitk.sitkLinear, background, sitk.sitkFloat64)
     return sitk.Cast(sitk.Round(resampled), pixel)  # within the input's range: linear interpolation never leaves it
-
-
-def _registration_method(fixed: sitk.Image, masks: tuple[sitk.Image | None, sitk.Image | None],
-                         settings: Refinement) -> sitk.ImageRegistrationMethod:
-    method = sitk.ImageRegistrationMethod()
-    method.SetMetricAsMattesMutualInformation(numberOfHistogramBins=settings.histogram_bins)
-    method.SetInterpolator(sitk.sitkLinear)
-    # Gradients at the sample points only: ITK's default filters the whole image, seconds on a 1 mm head.
-    method.MetricUseFixedImageGradientFilterOff()
-    method.MetricUseMovingImageGradientFilterOff()
-    if masks[0] is not None:
-        method.SetMetricFixedMask(masks[0])
-    if masks[1] is not None:
-        method.SetMetricMovingMask(masks[1])
-    method.SetMetricSamplingStrategy(method.RANDOM)
-    voxels = np.prod(fixed.GetSize())
-    fractions = [min(1.0, settings.samples * factor ** 3 / voxels) for factor in settings.shrink_factors]
-    method.SetMetricSamplingPercentagePerLevel(fractions, settings.seed)
-    return method
-
-
-def _crop_to_mask(image: sitk.Image, mask: sitk.Image) -> sitk.Image:
-    """``image`` cropped to the box (on its own grid) that holds every voxel of ``mask`` (any grid, same space)."""
-    statistics = sitk.LabelShapeStatisticsImageFilter()
-    statistics.Execute(sitk.Cast(mask > 0, sitk.sitkUInt8))
-    if not statistics.HasLabel(1):
-        return image
-    start, size = np.split(np.asarray(statistics.GetBoundingBox(1)), 2)
-    corners = [mask.TransformContinuousIndexToPhysicalPoint((start + (size - 1) * np.asarray(corner) + 0.5 * (
-        2 * np.asarray(corner) - 1)).tolist()) for corner in np.ndindex(2, 2, 2)]
-    indices = np.array([image.TransformPhysicalPointToContinuousIndex(point) for point in corners])
-    low = np.clip(np.floor(indices.min(0)).astype(int), 0, np.asarray(image.GetSize()) - 1)
-    high = np.clip(np.ceil(indices.max(0)).astype(int), 0, np.asarray(image.GetSize()) - 1)
-    return sitk.RegionOfInterest(image, (high - low + 1).tolist(), low.tolist())
-
-
-def _float32(image: sitk.Image) -> sitk.Image:
-    """``image`` as float32, the pixel type the registration method wants; no copy when it is one already."""
-    return image if image.GetPixelID() == sitk.sitkFloat32 else sitk.Cast(image, sitk.sitkFloat32)
-
-
-def mattes_metric(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform,
-                  masks: tuple[sitk.Image | None, sitk.Image | None],
-                  settings: Refinement = Refinement(), *, crop: bool = True) -> float | None:
-    """Mattes mutual information of the pair under ``fixed_to_moving`` at full resolution (lower is better); ``None``
-    where the transform maps no sampled fixed point into the moving image (no overlap, e.g. two unrelated scanner
-    frames taken as they are stored).
-
-    SimpleITK's ``MetricEvaluate`` visits every fixed voxel whatever the sampling settings (measured: the same value
-    and time with RANDOM, REGULAR and NONE; 0.7 s on a 1 mm head), so every voxel of the fixed mask counts, and the
-    fixed image is cropped to the mask's box first (``crop``; ``False`` where the caller has cropped it already): the
-    same value, in less time.
-    """
-    method = _registration_method(fixed, masks, settings)
-    if crop and masks[0] is not None:
-        fixed = _crop_to_mask(fixed, masks[0])
-    method.SetMetricSamplingStrategy(method.NONE)
-    method.SetInitialTransform(fixed_to_moving)
-    try:
-        return method.MetricEvaluate(_float32(fixed), _float32(moving))
-    except RuntimeError as error:
-        if _lost_overlap(error):
-            return None
-        raise
-
-
-def _lost_overlap(error: RuntimeError) -> bool:
-    """Whether SimpleITK's metric failed because the images, as mapped, (almost) do not overlap."""
-    return "do not sufficiently overlap" in str(error) or "outside moving image buffer" in str(error)
-
-
-MIN_LEVEL_VOXELS = 4
-"""The refinement's pyramid shrinks an axis no further than to this many voxels."""
-
-
-def level_factors(size: Sequence[int], factor: int) -> list[int]:
-    """Per-axis shrink factors of a pyramid level of ``factor`` for an image of ``size`` voxels: an axis keeps at
-    least :data:`MIN_LEVEL_VOXELS` voxels (thinner, ITK's metric fails on the level's images)."""
-    return [max(1, min(factor, length // MIN_LEVEL_VOXELS)) for length in size]
-
-
-def first_step_mm(settings: Refinement, spacing: Sequence[float]) -> float:
-    """The regular-step gradient descent's first step (mm) at the coarsest level of fixed voxel ``spacing`` (mm):
-    ``settings.max_step_mm``, or half the finest of ``spacing`` where that is ``None``, so that the step follows the
-    image's scale (a mouse at 0.1 mm and a head at 2 mm alike)."""
-    return settings.max_step_mm if settings.max_step_mm is not None else 0.5 * float(min(spacing))
-
-
-def image_pyramid(fixed: sitk.Image, moving: sitk.Image, settings: Refinement = Refinement()
-                  ) -> list[tuple[sitk.Image, sitk.Image]]:
-    """Both images per refinement level, coarse to fine: float32, smoothed (``settings.smoothing_mm``, physical
-    sigma) and shrunk (``settings.shrink_factors``).
-
-    Computed once and shared by every start: SimpleITK's registration method rebuilds its pyramid on each run, which
-    on a 1 mm head costs about ten times the coarse level's own optimisation.
-    """
-    levels = []
-    for factor, sigma in zip(settings.shrink_factors, settings.smoothing_mm, strict=True):
-        pair = []
-        for image in (fixed, moving):
-            image = sitk.Cast(image, sitk.sitkFloat32)
-            if sigma > 0:
-                image = sitk.SmoothingRecursiveGaussian(image, sigma)
-            factors = level_factors(image.GetSize(), factor)
-            pair.append(sitk.Shrink(image, factors) if max(factors) > 1 else image)
-        levels.append((pair[0], pair[1]))
-    return levels
-
-
-def refine_candidates(pyramid: list[tuple[sitk.Image, sitk.Image]], candidates: list[sitk.Transform],
-                      masks: tuple[sitk.Image | None, sitk.Image | None], settings: Refinement = Refinement(),
-                      progress: Callable[[float], None] | None = None
-                      ) -> tuple[int, sitk.Transform | None, list[float | None]]:
-    """The local search from several global candidates, by successive halving over the pyramid.
-
-    Every candidate that overlaps runs the coarsest level; after each level only the ``settings.survivors`` best (by
-    the metric on that level's images) go on. Phase correlation ranks a pose and its half-turn twin almost alike
-    across modalities, and mutual information at the unrefined poses hardly differs either; one coarse level from
-    each tells them apart (MNI head T1 to its pseudo-CT: about -0.66 from the right candidate, -0.09 from the twins).
-
-    Args:
-        pyramid: :func:`image_pyramid` of the pair.
-        candidates: the starts, fixed to moving: the solver's global estimates, its own choice first, and the stored
-            pose last when it is one (:attr:`Refinement.stored_start`).
-
-    Returns:
-        ``(index, transform, metrics)``: the winner's index in ``candidates``, its refined transform (``None`` when no
-        candidate overlaps the fixed mask) and every candidate's metric after the coarsest level (``None`` without
-        overlap).
-    """
-    # The images are pre-shrunk; each level's first step shrinks with them (Refinement.max_step_mm), as ITK's
-    # multi-resolution examples (MultiResImageRegistration1) shrink the optimiser's step between levels.
-    coarsest = first_step_mm(settings, pyramid[0][0].GetSpacing())
-    level_settings = [replace(settings, shrink_factors=(1,), smoothing_mm=(0.0,),
-                              max_step_mm=coarsest * factor / settings.shrink_factors[0])
-                      for factor in settings.shrink_factors]
-    # Each level's fixed image cropped to the fixed mask's box once, for every metric evaluation on that level.
-    cropped = [fixed if masks[0] is None else _crop_to_mask(fixed, masks[0]) for fixed, _ in pyramid]
-    coarse_moving = pyramid[0][1]
-    survivors = [(index, candidate) for index, candidate in enumerate(candidates)
-                 if mattes_metric(cropped[0], coarse_moving, candidate, masks, level_settings[0],
-                                  crop=False) is not None]
-    metrics: list[float | None] = [None] * len(candidates)
-    for level, (fixed, moving) in enumerate(pyramid):
-        if level > 0:
-            survivors = survivors[:settings.survivors[min(level, len(settings.survivors)) - 1]]
-        scored = []
-        for done, (index, transform) in enumerate(survivors, start=1):
-            try:
-                transform = refine_transform(fixed, moving, transform, masks, level_settings[level])
-                value = mattes_metric(cropped[level], moving, transform, masks, level_settings[level],
-                                      crop=False) if len(survivors) > 1 or level == 0 else None
-            except RuntimeError as error:  # the search drifted off the moving image: this start is lost
-                if not _lost_overlap(error):
-                    raise
-                value = None
-            scored.append((math.inf if value is None else value, index, transform))
-            if level == 0:
-                metrics[index] = value
-            if progress is not None:
-                progress((level + done / len(survivors)) / len(pyramid))
-        survivors = [(index, transform) for _, index, transform in _merge_same_poses(
-            sorted(scored, key=lambda item: item[0]), cropped[level])]
-    if not survivors:
-        return 0, None, metrics
-    return survivors[0][0], survivors[0][1], metrics
-
-
-def _merge_same_poses(scored: list[tuple[float, int, sitk.Transform]], fixed: sitk.Image
-                      ) -> list[tuple[float, int, sitk.Transform]]:
-    """``scored`` (metric, start index, refined transform; best metric first) with the starts that reached one pose
-    (within a voxel of ``fixed``, on average over its corners) merged: the best metric and its transform, under the
-    lowest start index. Which start found an optimum is the solver's ranking's call, the stored pose last: without
-    this, the stored pose won ties by sampling noise (an MRI-DIR CT round trip: both -1.33), and the report named the
-    identity as the start, with its own low confidence. The transform stays the best one: a voxel is 8 mm at the
-    coarsest level, and two starts that close can still end apart in metric (an MNI pseudo-CT pose: -0.46 and
-    -0.69 there, 0.99 mm off when the lower index's transform went on, 0.04 mm with the better one)."""
-    ends = np.asarray(fixed.GetSize()) - 1
-    corners = [fixed.TransformContinuousIndexToPhysicalPoint((ends * np.asarray(corner)).tolist())
-               for corner in np.ndindex(2, 2, 2)]
-    tolerance = max(fixed.GetSpacing())
-    merged: list[tuple[float, int, sitk.Transform]] = []
-    for value, index, transform in scored:
-        same = next((place for place, (_, _, other) in enumerate(merged) if math.isfinite(value)
-                     and target_registration_error(transform, other, corners) < tolerance), None)
-        if same is None:
-            merged.append((value, index, transform))
-        elif index < merged[same][1]:
-            merged[same] = (merged[same][0], index, merged[same][2])
-    return merged
-
-
-def refine_transform(fixed: sitk.Image, moving: sitk.Image, initial: sitk.Transform,
-                     masks: tuple[sitk.Image | None, sitk.Image | None], settings: Refinement = Refinement(),
-                     progress: Callable[[float], None] | None = None) -> sitk.Transform:
-    """Multi-resolution Mattes mutual-information registration started from ``initial``, in one SimpleITK run: every
-    level's first step is the coarsest level's (:func:`first_step_mm`; :func:`refine_candidates` shrinks it level by
-    level).
-
-    The optimiser moves a residual transform ``D`` near the identity and the result is ``initial o D``: a versor
-    parameterises rotations badly near 180 degrees (its scalar part vanishes), where a global estimate often lies.
-
-    Returns:
-        A new transform of ``initial``'s type (rigid or similarity), fixed to moving, same centre; ``initial`` is left
-        untouched.
-    """
-    method = _registration_method(fixed, masks, settings)
-    coarsest = np.asarray(fixed.GetSpacing()) * level_factors(fixed.GetSize(), settings.shrink_factors[0])
-    method.SetOptimizerAsRegularStepGradientDescent(learningRate=first_step_mm(settings, coarsest), minStep=1e-2,
-                                                    numberOfIterations=settings.iterations,
-                                                    relaxationFactor=0.5, gradientMagnitudeTolerance=1e-6)
-    method.SetOptimizerScalesFromPhysicalShift()
-    method.SetShrinkFactorsPerLevel(list(settings.shrink_factors))
-    method.SetSmoothingSigmasPerLevel(list(settings.smoothing_mm))
-    method.SmoothingSigmasAreSpecifiedInPhysicalUnitsOn()
-    rigid = initial.GetName() == "VersorRigid3DTransform"
-    centre = initial.GetFixedParameters()[:3]
-    residual = sitk.VersorRigid3DTransform() if rigid else sitk.Similarity3DTransform()
-    residual.SetCenter(centre)
-    method.SetMovingInitialTransform(initial)
-    method.SetInitialTransform(residual, inPlace=True)
-    if progress is not None:
-        levels = len(settings.shrink_factors)
-        method.AddCommand(sitk.sitkMultiResolutionIterationEvent,
-                          lambda: progress(method.GetCurrentLevel() / levels))
-    method.Execute(_float32(fixed), _float32(moving))
-    # ITK's registration maps a fixed point through the optimised transform first, then the moving initial one.
-    return similarity_transform(homogeneous_matrix(initial) @ homogeneous_matrix(residual), np.asarray(centre),
-                                rigid=rigid)

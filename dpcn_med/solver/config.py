@@ -43,10 +43,13 @@ _COUNT_MAXIMUMS = {
 them a value is a typo, which allocated gigabytes (``sphere_radii`` and ``upsample`` multiply a grid's size) or
 failed inside torch (``peaks`` beyond the SO(3) grid in ``topk``). A scored grid is at most the largest solver grid
 (``2 * MAX_BANDWIDTH``); after 30 halvings the rotation step is below float32's resolution. ``alternatives`` has no
-maximum: each call sets it (from :attr:`dpcn_med.register.Refinement.starts`), and only the candidates there are
+maximum: each call sets it (from :attr:`dpcn_med.refine.Refinement.starts`), and only the candidates there are
 come back."""
 
 _FLAGS = ("log_magnitude", "half_turns", "refine", "profile")
+
+DEFAULT_BANDWIDTH = 32
+"""The bandwidth ``B`` of a registration and of a new model when none is given: fast on a CPU."""
 
 MIN_TEMPERATURE = 1e-12
 """Least float temperature. A softmax divides correlations in ``[-1, 1]`` by it: in float32 the poses were NaN from
