@@ -22,7 +22,8 @@ import numpy as np
 from dpcn_med.benchmark import CASES, QUICK, SUCCESS_MM, rotation_in_bin
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
 from dpcn_med.preprocess import foreground_box
-from dpcn_med.register import Refinement, register
+from dpcn_med.refine import Refinement
+from dpcn_med.registration import register
 from dpcn_med.solver import SolverConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -5,7 +5,7 @@ script measures, on poses where dpcn_med sometimes fails (the partial-field-of-v
 same poses for the same seed), how well that and the registration's other numbers separate failures (TRE of 2 mm or
 more) from successes:
 
-- ``confidence``: :attr:`dpcn_med.register.RegistrationResult.confidence`;
+- ``confidence``: :attr:`dpcn_med.RegistrationResult.confidence`;
 - ``overlap``: the share of the fixed foreground mapped inside the moving field of view;
 - ``mattes_mi``: Mattes mutual information at the result (SimpleITK's sign: lower is better);
 - ``nmi``: Studholme's normalised mutual information at the result, on the fixed foreground (in ``[1, 2]``, less
@@ -37,7 +37,7 @@ from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
 from dpcn_med.io import write_csv
 from dpcn_med.preprocess import foreground_mask
-from dpcn_med.register import register
+from dpcn_med.registration import register
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from markdown import count_type, generated_by, publish, read_unique_rows, refuse_run_options  # noqa: E402  (the scripts' shared helpers)

@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 from dpcn_med.models import load_model
+from dpcn_med.registration import LEARNING_FREE
 from dpcn_med.solver import solve
 from dpcn_med.train import load_config
 from dpcn_med.train.data import validation_set, volume_bank
@@ -63,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
              "median translation error (voxels) | 90th percentile rotation error (deg) |",
              "|---|---|---|---|---|---|"]
     for name in args.models:
-        if name.lower() in ("none", "learning-free"):
+        if name.lower() in LEARNING_FREE:
             label = "learning-free solver"
 
             def predict(fixed, moving):

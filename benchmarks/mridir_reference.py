@@ -31,7 +31,8 @@ from dpcn_med.benchmark import BASELINE_REFINEMENT
 from dpcn_med.evaluation import foreground_corners, moved_copy
 from dpcn_med.geometry import homogeneous_matrix, random_rotation, scale_and_rotation, similarity_transform
 from dpcn_med.preprocess import Preprocessing, foreground_box, prepare
-from dpcn_med.register import mattes_metric, refine_transform, register
+from dpcn_med.refine import mattes_metric, refine_transform
+from dpcn_med.registration import register
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)

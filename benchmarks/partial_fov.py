@@ -38,7 +38,7 @@ from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.io import atomic_output, write_csv
 from dpcn_med.preprocess import Preprocessing, foreground_box, foreground_mask
-from dpcn_med.register import register
+from dpcn_med.registration import register
 from dpcn_med.solver import SolverConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -134,7 +134,7 @@ ROW_FIELDS = {"case": str, "overlap": float, "trial": int, "method": str, "tre_m
 def run(case: str, overlaps: list[float], trials: int, seed: int, methods: list[str], baseline_trials: int,
         **settings) -> list[dict]:
     """One row per pose and method of one case: ``case``, ``overlap``, ``trial``, ``method``, ``tre_mm``,
-    ``seconds``. ``settings`` go to :func:`dpcn_med.register.register` for ``"dpcn"``; the other methods (keys of
+    ``seconds``. ``settings`` go to :func:`dpcn_med.register` for ``"dpcn"``; the other methods (keys of
     :data:`dpcn_med.benchmark.METHODS`) run on the first ``baseline_trials`` poses."""
     fixed_whole, moving_whole = case_images(case)
     rows = []

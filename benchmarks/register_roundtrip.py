@@ -25,7 +25,7 @@ import torch
 
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.preprocess import foreground_box
-from dpcn_med.register import register
+from dpcn_med.registration import register
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)

@@ -36,7 +36,8 @@ from dpcn_med import io
 from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
 from dpcn_med.preprocess import foreground_box, foreground_mask
-from dpcn_med.register import Refinement, refine_transform, register
+from dpcn_med.refine import Refinement, refine_transform
+from dpcn_med.registration import register
 
 SUCCESS_MM = 2.0
 BIN_DEGREES = 30

@@ -141,7 +141,7 @@ def model_identity(model: str) -> str | dict[str, str]:
     Files that cannot be read keep their path alone (the registration then says what is wrong).
     """
     from dpcn_med.models.weights import model_paths
-    from dpcn_med.register import LEARNING_FREE
+    from dpcn_med.registration import LEARNING_FREE
 
     if model.lower() in LEARNING_FREE:
         return "none"
@@ -196,7 +196,7 @@ def register_to_folder(fixed: str, moving: str, output: Path, *, settings: Regis
     Raises:
         InputError: a bad input or output folder, before anything is written.
     """
-    from dpcn_med.register import register
+    from dpcn_med.registration import register
     from dpcn_med.report import registration_report
 
     _check_targets(output, {p: "an input of this run" for p in (fixed, moving, fixed_mask, moving_mask)

@@ -21,7 +21,7 @@ from dpcn_med.preprocess import foreground_box, foreground_mask, histogram_value
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-    from dpcn_med.register import RegistrationResult
+    from dpcn_med.registration import RegistrationResult
 
 PLANE_AXES: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
     "axial": ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),

@@ -18,7 +18,7 @@ from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
 from dpcn_med.geometry import homogeneous_matrix
 from dpcn_med.preprocess import foreground_box
-from tests.test_register import mni_2mm
+from tests.test_registration import mni_2mm
 
 
 class TestRotationInBin:

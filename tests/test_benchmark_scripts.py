@@ -18,7 +18,7 @@ import torch
 
 from dpcn_med.evaluation import random_similarity
 from dpcn_med.preprocess import foreground_box
-from tests.test_register import mni_2mm
+from tests.test_registration import mni_2mm
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))  # as the scripts import each other and their shared helpers

@@ -21,7 +21,7 @@ from dpcn_med import __version__
 from dpcn_med.cli import OUTPUT_NAMES, main
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.preprocess import foreground_box
-from tests.test_register import coronal_slab, mni_2mm
+from tests.test_registration import coronal_slab, mni_2mm
 
 
 @pytest.fixture(scope="module")
@@ -266,9 +266,9 @@ class TestBadInput:
 
     @pytest.mark.parametrize("where", ["under_a_file", "over_a_file"])
     def test_unusable_output_folder_is_refused_before_any_work(self, where, pair, tmp_path, capsys, monkeypatch):
-        import dpcn_med.register  # noqa: F401  (the package exports the function under the module's name)
+        from dpcn_med import registration
 
-        monkeypatch.setattr(sys.modules["dpcn_med.register"], "register",
+        monkeypatch.setattr(registration, "register",
                             lambda *args, **kwargs: pytest.fail("registered"))
         (tmp_path / "notes.txt").write_text("x")
         output = tmp_path / "notes.txt" / "out" if where == "under_a_file" else tmp_path / "notes.txt"
@@ -277,9 +277,9 @@ class TestBadInput:
         assert (tmp_path / "notes.txt").read_text() == "x"
 
     def test_output_through_a_dangling_link_is_refused_before_any_work(self, pair, tmp_path, capsys, monkeypatch):
-        import dpcn_med.register  # noqa: F401  (the package exports the function under the module's name)
+        from dpcn_med import registration
 
-        monkeypatch.setattr(sys.modules["dpcn_med.register"], "register",
+        monkeypatch.setattr(registration, "register",
                             lambda *args, **kwargs: pytest.fail("registered"))
         (tmp_path / "link").symlink_to(tmp_path / "gone")
         assert main(["register", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "link" / "out")]) == 2
@@ -347,9 +347,7 @@ class TestLowConfidence:
     def test_a_nan_confidence_is_never_confident(self, pair, tmp_path, monkeypatch, capsys):
         from dataclasses import replace
 
-        import dpcn_med.register  # noqa: F401  (the package exports the function under the module's name)
-
-        module = sys.modules["dpcn_med.register"]
+        from dpcn_med import registration as module
         real = module.register
         monkeypatch.setattr(module, "register",
                             lambda *args, **kwargs: replace(real(*args, **kwargs), confidence=float("nan")))

@@ -17,7 +17,7 @@ from dpcn_med.cli import main
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.outputs import RegistrationSettings
 from dpcn_med.preprocess import foreground_box
-from tests.test_register import mni_2mm
+from tests.test_registration import mni_2mm
 
 distributed = pytest.importorskip("distributed", reason="Dask is the optional extra dpcn_med[cluster]")
 

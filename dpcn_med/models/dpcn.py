@@ -20,13 +20,16 @@ from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequ
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import axis_angle_to_matrix, warp
 from dpcn_med.models.features import FeatureExtractor
+from dpcn_med.preprocess import MODALITIES as _INPUT_MODALITIES
 from dpcn_med.preprocess import Preprocessing
 from dpcn_med.solver import LossWeights, PoseTarget, SolverConfig, SolveResult, StageTemperatures, Temperatures, solve
 from dpcn_med.solver import pose_loss as solver_pose_loss
+from dpcn_med.solver.config import DEFAULT_BANDWIDTH
 from dpcn_med.solver.translation import TranslationEstimate, phase_translation
 from dpcn_med.solver.validation import check_grid_bandwidth, check_mode
 
-MODALITIES = ("ct", "mr", "us")
+MODALITIES = tuple(modality for modality in _INPUT_MODALITIES if modality != "auto")
+"""What a model is trained for: :data:`dpcn_med.preprocess.MODALITIES` but ``"auto"``."""
 PER_CALL_SOLVER_FIELDS = ("bandwidth", "refine", "alternatives", "profile")
 """:class:`SolverConfig` fields a model does not record: the bandwidth is the model's own, the rest each call sets."""
 REQUIRED_KEYS = ("bandwidth", "channels", "residual_units", "modalities", "share_weights", "mode", "preprocessing")
@@ -82,14 +85,14 @@ class ModelConfig:
         compensation_noise_scale: ...and its scale the truth times ``exp(N(0, this))``.
         temperatures: initial softmax temperatures ``(rotation, scale, translation)`` (learned afterwards).
         preprocessing: the :class:`dpcn_med.preprocess.Preprocessing` fields the training grids are made with, and
-            so the ones :func:`dpcn_med.register.register` uses with this model (the defaults when it was created).
+            so the ones :func:`dpcn_med.register` uses with this model (the defaults when it was created).
         solver: the :class:`dpcn_med.solver.SolverConfig` fields the model trains and registers with (the defaults
             when it was created), so that a later change of the learning-free defaults leaves a trained model as it
             was; all but :data:`PER_CALL_SOLVER_FIELDS`. A config saved before this key existed gets today's defaults.
         version: dpcn_med version that made the model.
     """
 
-    bandwidth: int = 32
+    bandwidth: int = DEFAULT_BANDWIDTH
     channels: tuple[int, ...] = (8, 16, 32, 64)
     residual_units: int = 1
     modalities: tuple[str, str] = ("ct", "mr")

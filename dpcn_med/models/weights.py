@@ -16,9 +16,9 @@ import torch
 
 from dpcn_med import io
 from dpcn_med.arguments import shown
+from dpcn_med.devices import resolve_device
 from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.models.dpcn import DPCN, ModelConfig
-from dpcn_med.register import resolve_device
 
 FORMAT = "dpcn_med.model/1"
 """The JSON's ``format`` key and the weights' ``format`` metadata: what wrote them and how."""
@@ -77,7 +77,7 @@ def save_model(model: DPCN, path: str | os.PathLike, *, record: dict | None = No
 
 def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -> DPCN:
     """A model saved by :func:`save_model`, in eval mode on ``device`` (``auto``, ``cpu``, ``cuda`` or ``cuda:N``, as
-    :func:`dpcn_med.register.resolve_device` reads it).
+    :func:`dpcn_med.devices.resolve_device` reads it).
 
     Raises:
         InputNotFoundError: either file is missing.

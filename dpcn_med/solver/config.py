@@ -34,6 +34,9 @@ docs/design_notes/solver.md)."""
 
 _FLAGS = ("log_magnitude", "half_turns", "refine", "profile")
 
+DEFAULT_BANDWIDTH = 32
+"""The bandwidth ``B`` of a registration and of a new model when none is given: fast on a CPU."""
+
 MIN_TEMPERATURE = 1e-12
 """Least float temperature, ten orders of magnitude below the defaults: anything near it is a hard arg-max already
 (why this value: docs/design_notes/solver.md)."""

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
+from dpcn_med.devices import resolve_device
 from dpcn_med.errors import InputError
-from dpcn_med.register import resolve_device
 
 
 @dataclass(frozen=True)

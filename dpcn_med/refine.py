@@ -1,0 +1,407 @@
+"""The local refinement: SimpleITK Mattes mutual information from the global candidates, and the choice among them.
+
+:func:`choose_and_refine` is the fourth step of :func:`dpcn_med.register`: every start (the solver's candidates, the
+stored pose last) runs the coarsest level of one shared image pyramid (:func:`image_pyramid`), the best go on level by
+level (:func:`refine_candidates`), and the refined transform is kept only where it lowers the metric. The settings
+are :class:`Refinement`; the measurements behind them are in docs/design_notes/registration.md.
+
+Convention:
+    Every transform maps fixed points to moving points (ITK's resampling direction), LPS mm. ``masks`` are
+    ``(fixed, moving)``: binary images in each image's physical space that restrict where the metric is sampled, or
+    ``None``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+import SimpleITK as sitk
+
+from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequence
+from dpcn_med.errors import InputError
+from dpcn_med.evaluation import target_registration_error
+from dpcn_med.geometry import homogeneous_matrix, similarity_transform
+from dpcn_med.preprocess import clip_outliers
+
+Masks = tuple[sitk.Image | None, sitk.Image | None]
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """Settings of the local Mattes mutual-information refinement (SimpleITK), defined once (the measurements behind
+    the defaults: docs/design_notes/registration.md).
+
+    Attributes:
+        shrink_factors: image pyramid, coarse to fine (integers >= 1).
+        smoothing_mm: Gaussian sigma per level, mm (>= 0, one per shrink factor).
+        samples: random metric samples per level (capped at every voxel), at least 1000.
+        histogram_bins: Mattes histogram bins, at least 8.
+        iterations: optimiser iterations per level, at least 1.
+        max_step_mm: largest first step of the regular-step gradient descent at the coarsest level, as a physical
+            shift in mm (> 0), or ``None`` (default) for half the finest voxel spacing of the fixed image's coarsest
+            level (:func:`first_step_mm`): 4 mm for a 2 mm image shrunk 4 times, 2 mm for a 1 mm one. In
+            :func:`refine_candidates` each finer level starts at this times its shrink factor over the coarsest
+            one's (4, 2, 1 mm for the 2 mm image); :func:`refine_transform`, one SimpleITK run over the levels,
+            starts each at this step.
+        mask_margin_voxels: the fixed foreground, dilated by this many (preprocessing) voxels, is where the metric is
+            sampled when the user gives no fixed mask.
+        starts: global candidates refined: the solver's choice and up to ``starts - 1`` runner-ups (1: its choice
+            only). Every one runs the coarsest pyramid level (:func:`refine_candidates`).
+        survivors: how many of them (at least 1) go on to each next level, by their metric (the last value holds for
+            the rest).
+        stored_start: the stored pose (identity) is one more start, after the solver's candidates, so that inputs
+            already roughly aligned (one scanner frame, or aligned by hand) stay aligned where phase correlation
+            misses. Where the stored pose leaves no overlap (unrelated scanner frames) it is dropped before any work,
+            like any candidate.
+        seed: sampling seed in ``[1, 2**32 - 1]`` (the same inputs give the same result; SimpleITK takes 0 for
+            ``sitkWallClock``, a new seed on every run).
+
+    Raises:
+        InputError: a value of the wrong type or out of range, named with its value.
+    """
+
+    shrink_factors: tuple[int, ...] = (4, 2, 1)
+    smoothing_mm: tuple[float, ...] = (2.0, 1.0, 0.0)
+    samples: int = 30_000
+    histogram_bins: int = 32
+    iterations: int = 100
+    max_step_mm: float | None = None
+    mask_margin_voxels: int = 3
+    starts: int = 16
+    survivors: tuple[int, ...] = (2, 1)
+    stored_start: bool = True
+    seed: int = 20261123
+
+    def __post_init__(self) -> None:
+        factors = tuple(check_integer(f"shrink_factors[{level}]", factor, minimum=1)
+                        for level, factor in enumerate(check_sequence("shrink_factors", self.shrink_factors)))
+        smoothing = check_sequence("smoothing_mm", self.smoothing_mm)
+        if len(smoothing) != len(factors):
+            raise InputError(f"smoothing_mm is {self.smoothing_mm!r}: {len(smoothing)} values; expected "
+                             f"{len(factors)}, one per level of shrink_factors {factors}")
+        checked = {
+            "shrink_factors": factors,
+            "smoothing_mm": tuple(check_real(f"smoothing_mm[{level}]", sigma, minimum=0)
+                                  for level, sigma in enumerate(smoothing)),
+            "samples": check_integer("samples", self.samples, minimum=1000),
+            "histogram_bins": check_integer("histogram_bins", self.histogram_bins, minimum=8),
+            "iterations": check_integer("iterations", self.iterations, minimum=1),
+            "max_step_mm": None if self.max_step_mm is None else check_real("max_step_mm", self.max_step_mm,
+                                                                             minimum=0, above=True),
+            "mask_margin_voxels": check_integer("mask_margin_voxels", self.mask_margin_voxels, minimum=0),
+            "starts": check_integer("starts", self.starts, minimum=1),
+            "survivors": tuple(check_integer(f"survivors[{level}]", count, minimum=1)
+                               for level, count in enumerate(check_sequence("survivors", self.survivors))),
+            "stored_start": check_flag("stored_start", self.stored_start),
+            # SimpleITK's seed is an unsigned 32-bit integer, and 0 is sitkWallClock: a new seed on every run.
+            "seed": check_integer("seed", self.seed, minimum=1, maximum=2 ** 32 - 1),
+        }
+        for name, value in checked.items():
+            object.__setattr__(self, name, value)
+
+
+MIN_LEVEL_VOXELS = 4
+"""The refinement's pyramid shrinks an axis no further than to this many voxels."""
+
+
+def level_factors(size: Sequence[int], factor: int) -> list[int]:
+    """Per-axis shrink factors of a pyramid level of ``factor`` for an image of ``size`` voxels: an axis keeps at
+    least :data:`MIN_LEVEL_VOXELS` voxels (thinner, ITK's metric fails on the level's images)."""
+    return [max(1, min(factor, length // MIN_LEVEL_VOXELS)) for length in size]
+
+
+def first_step_mm(settings: Refinement, spacing: Sequence[float]) -> float:
+    """The regular-step gradient descent's first step (mm) at the coarsest level of fixed voxel ``spacing`` (mm):
+    ``settings.max_step_mm``, or half the finest of ``spacing`` where that is ``None``."""
+    return settings.max_step_mm if settings.max_step_mm is not None else 0.5 * float(min(spacing))
+
+
+def check_mask_extent(mask: sitk.Image | None, name: str, settings: Refinement) -> None:
+    """Refuse a mask too small for the refinement: its box must span :data:`MIN_LEVEL_VOXELS` voxels of the coarsest
+    pyramid level along each axis, as every level's images do.
+
+    Args:
+        mask: a binary mask already checked (not empty), or ``None`` (nothing to check).
+        name: the mask's file or argument, for the message.
+
+    Raises:
+        InputError: the mask's box is thinner than that along some axis; the message gives both sizes in mm.
+    """
+    if mask is None:
+        return
+    statistics = sitk.LabelShapeStatisticsImageFilter()
+    statistics.Execute(sitk.Cast(mask > 0, sitk.sitkUInt8))
+    box = np.asarray(statistics.GetBoundingBox(1)[3:])  # io.check_mask refused an empty mask
+    needed = MIN_LEVEL_VOXELS * np.asarray(level_factors(mask.GetSize(), settings.shrink_factors[0]))
+    if (box < needed).any():
+        spacing = np.asarray(mask.GetSpacing())
+        raise InputError(f"{name}: too small to refine: its box is {_mm(box * spacing)} mm; the refinement needs at "
+                         f"least {_mm(needed * spacing)} mm ({MIN_LEVEL_VOXELS} voxels of its coarsest level along "
+                         "each axis); give a larger mask, or register without refinement (refine=False, "
+                         "--no-refine), whose confidence then says whether the mask held enough")
+
+
+def _mm(lengths: np.ndarray) -> str:
+    return " x ".join(f"{length:g}" for length in np.round(lengths, 1))
+
+
+def metric_masks(fixed_mask: sitk.Image | None, fixed_foreground: sitk.Image, moving_mask: sitk.Image | None,
+                 settings: Refinement) -> Masks:
+    """Where the metric is sampled: the user's masks; without a fixed one, the fixed foreground dilated by
+    ``settings.mask_margin_voxels`` (background air otherwise dominates the joint histogram)."""
+    sampled = fixed_mask if fixed_mask is not None else sitk.BinaryDilate(
+        fixed_foreground, [settings.mask_margin_voxels] * 3)
+    return sampled, moving_mask
+
+
+def _registration_method(fixed: sitk.Image, masks: Masks, settings: Refinement) -> sitk.ImageRegistrationMethod:
+    method = sitk.ImageRegistrationMethod()
+    method.SetMetricAsMattesMutualInformation(numberOfHistogramBins=settings.histogram_bins)
+    method.SetInterpolator(sitk.sitkLinear)
+    # Gradients at the sample points only: ITK's default filters the whole image, seconds on a 1 mm head.
+    method.MetricUseFixedImageGradientFilterOff()
+    method.MetricUseMovingImageGradientFilterOff()
+    if masks[0] is not None:
+        method.SetMetricFixedMask(masks[0])
+    if masks[1] is not None:
+        method.SetMetricMovingMask(masks[1])
+    method.SetMetricSamplingStrategy(method.RANDOM)
+    voxels = np.prod(fixed.GetSize())
+    fractions = [min(1.0, settings.samples * factor ** 3 / voxels) for factor in settings.shrink_factors]
+    method.SetMetricSamplingPercentagePerLevel(fractions, settings.seed)
+    return method
+
+
+def _crop_to_mask(image: sitk.Image, mask: sitk.Image) -> sitk.Image:
+    """``image`` cropped to the box (on its own grid) that holds every voxel of ``mask`` (any grid, same space)."""
+    statistics = sitk.LabelShapeStatisticsImageFilter()
+    statistics.Execute(sitk.Cast(mask > 0, sitk.sitkUInt8))
+    if not statistics.HasLabel(1):
+        return image
+    start, size = np.split(np.asarray(statistics.GetBoundingBox(1)), 2)
+    corners = [mask.TransformContinuousIndexToPhysicalPoint((start + (size - 1) * np.asarray(corner) + 0.5 * (
+        2 * np.asarray(corner) - 1)).tolist()) for corner in np.ndindex(2, 2, 2)]
+    indices = np.array([image.TransformPhysicalPointToContinuousIndex(point) for point in corners])
+    low = np.clip(np.floor(indices.min(0)).astype(int), 0, np.asarray(image.GetSize()) - 1)
+    high = np.clip(np.ceil(indices.max(0)).astype(int), 0, np.asarray(image.GetSize()) - 1)
+    return sitk.RegionOfInterest(image, (high - low + 1).tolist(), low.tolist())
+
+
+def _float32(image: sitk.Image) -> sitk.Image:
+    """``image`` as float32, the pixel type the registration method wants; no copy when it is one already."""
+    return image if image.GetPixelID() == sitk.sitkFloat32 else sitk.Cast(image, sitk.sitkFloat32)
+
+
+def mattes_metric(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform, masks: Masks,
+                  settings: Refinement = Refinement(), *, crop: bool = True) -> float | None:
+    """Mattes mutual information of the pair under ``fixed_to_moving`` at full resolution (lower is better).
+
+    Every voxel of the fixed mask counts, whatever the sampling settings (SimpleITK's ``MetricEvaluate`` visits them
+    all), and the fixed image is cropped to the mask's box first, which gives the same value.
+
+    Args:
+        crop: crop the fixed image to the fixed mask's box; ``False`` where the caller has cropped it already.
+
+    Returns:
+        The metric, or ``None`` where the transform maps no sampled fixed point into the moving image (no overlap,
+        e.g. two unrelated scanner frames taken as they are stored).
+    """
+    method = _registration_method(fixed, masks, settings)
+    if crop and masks[0] is not None:
+        fixed = _crop_to_mask(fixed, masks[0])
+    method.SetMetricSamplingStrategy(method.NONE)
+    method.SetInitialTransform(fixed_to_moving)
+    try:
+        return method.MetricEvaluate(_float32(fixed), _float32(moving))
+    except RuntimeError as error:
+        if _lost_overlap(error):
+            return None
+        raise
+
+
+def _lost_overlap(error: RuntimeError) -> bool:
+    """Whether SimpleITK's metric failed because the images, as mapped, (almost) do not overlap."""
+    return "do not sufficiently overlap" in str(error) or "outside moving image buffer" in str(error)
+
+
+def image_pyramid(fixed: sitk.Image, moving: sitk.Image, settings: Refinement = Refinement()
+                  ) -> list[tuple[sitk.Image, sitk.Image]]:
+    """Both images per refinement level, coarse to fine: float32, smoothed (``settings.smoothing_mm``, physical
+    sigma) and shrunk (``settings.shrink_factors``), computed once for every start."""
+    levels = []
+    for factor, sigma in zip(settings.shrink_factors, settings.smoothing_mm, strict=True):
+        pair = []
+        for image in (fixed, moving):
+            image = sitk.Cast(image, sitk.sitkFloat32)
+            if sigma > 0:
+                image = sitk.SmoothingRecursiveGaussian(image, sigma)
+            factors = level_factors(image.GetSize(), factor)
+            pair.append(sitk.Shrink(image, factors) if max(factors) > 1 else image)
+        levels.append((pair[0], pair[1]))
+    return levels
+
+
+@dataclass(frozen=True)
+class Choice:
+    """What :func:`choose_and_refine` chose.
+
+    Attributes:
+        index: the start it kept, an index into its ``starts``.
+        fixed_to_moving: that start refined, or the start itself where refining did not lower the metric.
+        refined: whether ``fixed_to_moving`` is the refined transform.
+        metric: Mattes mutual information at ``"stored"`` (identity), ``"dpc"`` (the start kept) and ``"refined"``
+            (``None`` where the pose leaves no overlap, or nothing was refined).
+        candidate_metrics: each start's metric after the coarsest level (``None`` without overlap).
+    """
+
+    index: int
+    fixed_to_moving: sitk.Transform
+    refined: bool
+    metric: dict[str, float | None]
+    candidate_metrics: list[float | None]
+
+
+def choose_and_refine(fixed: sitk.Image, moving: sitk.Image, starts: list[sitk.Transform], masks: Masks,
+                      settings: Refinement = Refinement(), progress: Callable[[float], None] | None = None) -> Choice:
+    """Refine every start (:func:`refine_candidates`), keep the best, and keep its refined transform only if that
+    lowers the metric at full resolution.
+
+    Args:
+        fixed: the fixed image as read.
+        moving: the moving image as read.
+        starts: fixed to moving, the solver's choice first, the stored pose last when it is one.
+        masks: where the metric is sampled (:func:`metric_masks`).
+        progress: called with the fraction of the refinement done, in ``[0, 1]``.
+    """
+    # The metric's histogram spans each image's range: far outliers would squeeze the anatomy into its first bin.
+    fixed_values, moving_values = clip_outliers(fixed), clip_outliers(moving)
+    metric: dict[str, float | None] = {"stored": None, "dpc": None, "refined": None}
+    metric["stored"] = mattes_metric(fixed_values, moving_values, sitk.Transform(3, sitk.sitkIdentity), masks,
+                                     settings)
+    pyramid = image_pyramid(fixed_values, moving_values, settings)
+    index, candidate, candidate_metrics = refine_candidates(pyramid, starts, masks, settings, progress)
+    metric["dpc"] = mattes_metric(fixed_values, moving_values, starts[index], masks, settings)
+    if metric["dpc"] is not None and candidate is not None:
+        metric["refined"] = mattes_metric(fixed_values, moving_values, candidate, masks, settings)
+        # The local optimiser only ever starts from a global estimate; keep it only if it improved the metric.
+        if metric["refined"] is not None and metric["refined"] <= metric["dpc"]:
+            return Choice(index, candidate, True, metric, candidate_metrics)
+    return Choice(index, starts[index], False, metric, candidate_metrics)
+
+
+def refine_candidates(pyramid: list[tuple[sitk.Image, sitk.Image]], candidates: list[sitk.Transform], masks: Masks,
+                      settings: Refinement = Refinement(), progress: Callable[[float], None] | None = None
+                      ) -> tuple[int, sitk.Transform | None, list[float | None]]:
+    """The local search from several global candidates, by successive halving over the pyramid.
+
+    Every candidate that overlaps runs the coarsest level; after each level only the ``settings.survivors`` best (by
+    the metric on that level's images) go on. Starts that reach one pose are merged (:func:`_merge_same_poses`).
+
+    Args:
+        pyramid: :func:`image_pyramid` of the pair.
+        candidates: the starts, fixed to moving: the solver's global estimates, its own choice first, and the stored
+            pose last when it is one (:attr:`Refinement.stored_start`).
+
+    Returns:
+        ``(index, transform, metrics)``: the winner's index in ``candidates``, its refined transform (``None`` when no
+        candidate overlaps the fixed mask) and every candidate's metric after the coarsest level (``None`` without
+        overlap).
+    """
+    # The images are pre-shrunk; each level's first step shrinks with them (Refinement.max_step_mm), as ITK's
+    # multi-resolution examples (MultiResImageRegistration1) shrink the optimiser's step between levels.
+    coarsest = first_step_mm(settings, pyramid[0][0].GetSpacing())
+    level_settings = [replace(settings, shrink_factors=(1,), smoothing_mm=(0.0,),
+                              max_step_mm=coarsest * factor / settings.shrink_factors[0])
+                      for factor in settings.shrink_factors]
+    # Each level's fixed image cropped to the fixed mask's box once, for every metric evaluation on that level.
+    cropped = [fixed if masks[0] is None else _crop_to_mask(fixed, masks[0]) for fixed, _ in pyramid]
+    coarse_moving = pyramid[0][1]
+    survivors = [(index, candidate) for index, candidate in enumerate(candidates)
+                 if mattes_metric(cropped[0], coarse_moving, candidate, masks, level_settings[0],
+                                  crop=False) is not None]
+    metrics: list[float | None] = [None] * len(candidates)
+    for level, (fixed, moving) in enumerate(pyramid):
+        if level > 0:
+            survivors = survivors[:settings.survivors[min(level, len(settings.survivors)) - 1]]
+        scored = []
+        for done, (index, transform) in enumerate(survivors, start=1):
+            try:
+                transform = refine_transform(fixed, moving, transform, masks, level_settings[level])
+                value = mattes_metric(cropped[level], moving, transform, masks, level_settings[level],
+                                      crop=False) if len(survivors) > 1 or level == 0 else None
+            except RuntimeError as error:  # the search drifted off the moving image: this start is lost
+                if not _lost_overlap(error):
+                    raise
+                value = None
+            scored.append((math.inf if value is None else value, index, transform))
+            if level == 0:
+                metrics[index] = value
+            if progress is not None:
+                progress((level + done / len(survivors)) / len(pyramid))
+        survivors = [(index, transform) for _, index, transform in _merge_same_poses(
+            sorted(scored, key=lambda item: item[0]), cropped[level])]
+    if not survivors:
+        return 0, None, metrics
+    return survivors[0][0], survivors[0][1], metrics
+
+
+def _merge_same_poses(scored: list[tuple[float, int, sitk.Transform]], fixed: sitk.Image
+                      ) -> list[tuple[float, int, sitk.Transform]]:
+    """``scored`` (metric, start index, refined transform; best metric first) with the starts that reached one pose
+    (within a voxel of ``fixed``, on average over its corners) merged: the best metric and its transform, under the
+    lowest start index (the solver's ranking, the stored pose last)."""
+    ends = np.asarray(fixed.GetSize()) - 1
+    corners = [fixed.TransformContinuousIndexToPhysicalPoint((ends * np.asarray(corner)).tolist())
+               for corner in np.ndindex(2, 2, 2)]
+    tolerance = max(fixed.GetSpacing())
+    merged: list[tuple[float, int, sitk.Transform]] = []
+    for value, index, transform in scored:
+        same = next((place for place, (_, _, other) in enumerate(merged) if math.isfinite(value)
+                     and target_registration_error(transform, other, corners) < tolerance), None)
+        if same is None:
+            merged.append((value, index, transform))
+        elif index < merged[same][1]:
+            merged[same] = (merged[same][0], index, merged[same][2])
+    return merged
+
+
+def refine_transform(fixed: sitk.Image, moving: sitk.Image, initial: sitk.Transform, masks: Masks,
+                     settings: Refinement = Refinement(), progress: Callable[[float], None] | None = None
+                     ) -> sitk.Transform:
+    """Multi-resolution Mattes mutual-information registration started from ``initial``, in one SimpleITK run: every
+    level's first step is the coarsest level's (:func:`first_step_mm`; :func:`refine_candidates` shrinks it level by
+    level).
+
+    The optimiser moves a residual transform ``D`` near the identity and the result is ``initial o D`` (why:
+    docs/design_notes/registration.md).
+
+    Returns:
+        A new transform of ``initial``'s type (rigid or similarity), fixed to moving, same centre; ``initial`` is left
+        untouched.
+    """
+    method = _registration_method(fixed, masks, settings)
+    coarsest = np.asarray(fixed.GetSpacing()) * level_factors(fixed.GetSize(), settings.shrink_factors[0])
+    method.SetOptimizerAsRegularStepGradientDescent(learningRate=first_step_mm(settings, coarsest), minStep=1e-2,
+                                                    numberOfIterations=settings.iterations,
+                                                    relaxationFactor=0.5, gradientMagnitudeTolerance=1e-6)
+    method.SetOptimizerScalesFromPhysicalShift()
+    method.SetShrinkFactorsPerLevel(list(settings.shrink_factors))
+    method.SetSmoothingSigmasPerLevel(list(settings.smoothing_mm))
+    method.SmoothingSigmasAreSpecifiedInPhysicalUnitsOn()
+    rigid = initial.GetName() == "VersorRigid3DTransform"
+    centre = initial.GetFixedParameters()[:3]
+    residual = sitk.VersorRigid3DTransform() if rigid else sitk.Similarity3DTransform()
+    residual.SetCenter(centre)
+    method.SetMovingInitialTransform(initial)
+    method.SetInitialTransform(residual, inPlace=True)
+    if progress is not None:
+        levels = len(settings.shrink_factors)
+        method.AddCommand(sitk.sitkMultiResolutionIterationEvent,
+                          lambda: progress(method.GetCurrentLevel() / levels))
+    method.Execute(_float32(fixed), _float32(moving))
+    # ITK's registration maps a fixed point through the optimised transform first, then the moving initial one.
+    return similarity_transform(homogeneous_matrix(initial) @ homogeneous_matrix(residual), np.asarray(centre),
+                                rigid=rigid)
