@@ -22,6 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from dpcn_med import io
 from dpcn_med.errors import InputError, InputNotFoundError
+from dpcn_med.io import images
 
 SIZE = (20, 24, 28)  # (x, y, z): every axis different, so a transposition cannot pass
 SPACING = (0.75, 1.25, 2.5)
@@ -371,7 +372,7 @@ class TestReadImage:
 
     @pytest.mark.parametrize("suffix", [".nii.gz", ".nii"])
     def test_nan_counted_across_chunk_boundaries(self, tmp_path, monkeypatch, suffix):
-        monkeypatch.setattr(io, "_CHUNK", 999)  # neither the header nor the voxels fall on chunk boundaries
+        monkeypatch.setattr(images, "_CHUNK", 999)  # neither the header nor the voxels fall on chunk boundaries
         array = sitk.GetArrayFromImage(make_volume())
         array.flat[[0, 249, 250, 5000, array.size - 1]] = (np.nan, np.nan, np.inf, np.nan, np.inf)
         path = tmp_path / f"v{suffix}"
@@ -385,7 +386,7 @@ class TestReadImage:
     @pytest.mark.parametrize("suffix", [".mha", ".nii.gz"])
     def test_highly_compressed_file_is_not_called_truncated(self, tmp_path, monkeypatch, suffix):
         # 256 KB of zeros inflate from a few hundred bytes: many chunks of output per chunk of input.
-        monkeypatch.setattr(io, "_CHUNK", 1000)
+        monkeypatch.setattr(images, "_CHUNK", 1000)
         path = tmp_path / f"zeros{suffix}"
         sitk.WriteImage(sitk.Image(40, 40, 40, sitk.sitkFloat32), str(path), useCompression=True)
         with pytest.raises(InputError, match="all voxels equal 0"):

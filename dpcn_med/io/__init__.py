@@ -1,0 +1,41 @@
+"""Every file the project reads or writes (the package's modules: see :mod:`dpcn_med.io.images`)."""
+
+from dpcn_med.io.images import (
+    GRID_TOLERANCE,
+    IMAGE_WRITE_SUFFIXES,
+    MAX_ORIGIN_MM,
+    MESH_SUFFIXES,
+    PICKLE_SUFFIXES,
+    SPACING_RANGE_MM,
+    TRANSFORM_SUFFIXES,
+    WORKING_COPIES,
+    atomic_output,
+    check_mask,
+    check_memory,
+    check_volume,
+    image_summary,
+    interrupts_deferred,
+    is_mesh_path,
+    read_csv,
+    read_image,
+    read_json,
+    read_mask,
+    read_mesh,
+    read_tensor_header,
+    read_tensors,
+    read_text,
+    read_transform,
+    write_csv,
+    write_image,
+    write_json,
+    write_tensors,
+    write_text,
+    write_transform,
+)
+from dpcn_med.io.images import _umask as _umask  # private, re-exported for tests/test_train.py
+
+__all__ = ["GRID_TOLERANCE", "IMAGE_WRITE_SUFFIXES", "MAX_ORIGIN_MM", "MESH_SUFFIXES", "PICKLE_SUFFIXES",
+           "SPACING_RANGE_MM", "TRANSFORM_SUFFIXES", "WORKING_COPIES", "atomic_output", "check_mask", "check_memory",
+           "check_volume", "image_summary", "interrupts_deferred", "is_mesh_path", "read_csv", "read_image",
+           "read_json", "read_mask", "read_mesh", "read_tensor_header", "read_tensors", "read_text", "read_transform",
+           "write_csv", "write_image", "write_json", "write_tensors", "write_text", "write_transform"]
