@@ -1,4 +1,5 @@
-"""Whether a file holds all it should: truncation and corruption forensics of NIfTI, Analyze, MetaImage and gzip.
+"""Whether a file holds all it should: truncation and corruption forensics of NIfTI, Analyze, MetaImage and gzip,
+and a file's SHA-256 digest.
 
 SimpleITK reads several cut or corrupt files without an error; these checks run before it reads the voxels and
 raise :class:`InputError` naming what is missing.
@@ -8,7 +9,9 @@ from __future__ import annotations
 
 import contextlib
 import gzip
+import hashlib
 import math
+import os
 import zlib
 from pathlib import Path
 from typing import Any
@@ -19,6 +22,7 @@ from dpcn_med.errors import InputError
 from dpcn_med.io._common import _GZIP_MAGIC
 
 _CHUNK = 1 << 20
+"""Bytes read at a time (1 MiB) where a file is streamed rather than read whole."""
 
 # Bytes per element of MetaImage's element types (MetaIO's MET_LONG is 32-bit).
 _META_ELEMENT_BYTES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4, "MET_UINT": 4,
@@ -27,6 +31,26 @@ _META_ELEMENT_BYTES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHOR
 
 _NIFTI_HEADER_BYTES = 348
 """Length of a NIfTI-1 header."""
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """The SHA-256 digest of a file's content.
+
+    Args:
+        path: the file.
+
+    Returns:
+        The digest as 64 lower-case hexadecimal digits (``hashlib.sha256(content).hexdigest()``).
+
+    Raises:
+        OSError: the file cannot be opened or read (``FileNotFoundError`` when it is missing).
+    """
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        # In blocks, so a file is never held whole: hashlib.file_digest is Python 3.11's, and 3.10 is supported.
+        while block := stream.read(_CHUNK):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def _nifti_header_bytes(filename: str) -> int | None:

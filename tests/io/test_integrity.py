@@ -1,7 +1,8 @@
-"""Tests for dpcn_med.io.integrity: truncated and corrupt files named as such."""
+"""Tests for dpcn_med.io.integrity: truncated and corrupt files named as such, and file_sha256."""
 
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 
@@ -196,3 +197,28 @@ class TestReadImageIntegrity:
         sitk.WriteImage(sitk.Image(40, 40, 40, sitk.sitkFloat32), str(path), useCompression=True)
         with pytest.raises(InputError, match="all voxels equal 0"):
             io.read_image(path)
+
+
+class TestFileSha256:
+    def test_known_digest(self, tmp_path):
+        (tmp_path / "abc.txt").write_bytes(b"abc")  # FIPS 180-2's example
+        assert io.file_sha256(tmp_path / "abc.txt") == ("ba7816bf8f01cfea414140de5dae2223"
+                                                        "b00361a396177a9cb410ff61f20015ad")
+
+    def test_a_file_of_several_blocks(self, tmp_path):
+        content = np.random.default_rng(0).bytes(3 * (1 << 20) + 12345)  # three 1 MiB blocks and part of a fourth
+        (tmp_path / "w.safetensors").write_bytes(content)
+        assert io.file_sha256(str(tmp_path / "w.safetensors")) == hashlib.sha256(content).hexdigest()
+
+    @pytest.mark.parametrize("size", [0, 6, 7, 8, 50])
+    def test_block_boundaries(self, tmp_path, monkeypatch, size):
+        monkeypatch.setattr(integrity, "_CHUNK", 7)
+        content = bytes(range(size))
+        (tmp_path / "f").write_bytes(content)
+        assert io.file_sha256(tmp_path / "f") == hashlib.sha256(content).hexdigest()
+
+    def test_errors_are_oserrors(self, tmp_path):
+        with pytest.raises(FileNotFoundError, match=r"none\.bin"):
+            io.file_sha256(tmp_path / "none.bin")
+        with pytest.raises(IsADirectoryError):
+            io.file_sha256(tmp_path)
