@@ -20,6 +20,8 @@ module          contents
 ``meshes``      :func:`read_mesh`, :func:`is_mesh_path`
 ==============  ====================================================================================================
 
+The reasons behind the checks, and what was measured: docs/design_notes/io.md.
+
 Convention:
     Physical space is ITK's LPS in millimetres (:mod:`dpcn_med.geometry` owns the frames). Images keep the origin,
     spacing and direction stored in the file; NIfTI stores them as float32, so they round-trip to about 1e-7 there

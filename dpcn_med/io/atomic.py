@@ -93,9 +93,7 @@ def _check_write_suffix(target: Path, suffixes: tuple[str, ...], what: str, note
 def _check_written(target: Path, check: Callable[[], None]) -> None:
     """Run ``check`` on the file just written for ``target``; raise ``OSError`` if it finds the file short.
 
-    ITK's NIfTI and text-transform writers report a full disk or a file-size limit on stderr only and return as if
-    all went well (measured with ``ulimit -f``: a cut .nii.gz, .nii and .tfm, no exception; the NRRD, MetaImage and
-    HDF5 writers raise), so what they wrote is read back before it replaces anything.
+    See docs/design_notes/io.md.
     """
     try:
         check()
@@ -105,11 +103,10 @@ def _check_written(target: Path, check: Callable[[], None]) -> None:
 
 
 def _check_nifti_length(path: Path) -> None:
-    """Raise ``InputError`` if a NIfTI file just written holds fewer bytes than its header needs.
+    """Raise ``InputError`` if a NIfTI file just written holds fewer bytes than its header needs; other files pass.
 
-    A .nii.gz is judged by its gzip trailer (its last 4 bytes: the inflated length modulo 2^32; a cut stream ends in
-    arbitrary bytes), not inflated again: reading back a 128 MiB CT that way added 46% to the write (measured). The
-    NRRD and MetaImage writers raise on a short write themselves.
+    A .nii.gz is judged by its gzip trailer (its last 4 bytes: the inflated length modulo 2^32), not inflated again.
+    See docs/design_notes/io.md.
     """
     lower = path.name.lower()
     if not lower.endswith((".nii", ".nii.gz")):

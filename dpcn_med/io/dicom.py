@@ -72,12 +72,9 @@ def _read_series(name: str, folder: Path, uid: str | None, max_bytes: int | None
 
 def _check_slice_positions(name: str, reader: sitk.ImageSeriesReader, image: sitk.Image) -> None:
     """Refuse a series whose slices are not where ITK stacks them: off the evenly spaced line that fits their Image
-    Positions best (a missing slice, or two acquisitions mixed: ITK only warns and stacks the slices at their mean
-    spacing, which stretches the volume), or stepping off the slice normal (a gantry tilt: ITK stacks them along the
-    normal, unsheared, silently).
+    Positions best (a missing slice, or two acquisitions mixed), or stepping off the slice normal (a gantry tilt).
 
-    Fitting the whole series, rather than comparing neighbours, keeps the positions' rounding (often to 0.01 mm in
-    the files) from reading as uneven or tilted slices.
+    See docs/design_notes/io.md.
     """
     key = "0020|0032"  # Image Position (Patient)
     count = image.GetSize()[2]

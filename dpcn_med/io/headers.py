@@ -25,8 +25,8 @@ GRID_TOLERANCE = 1e-4
 direction cosines; a mask's origin may differ by this relative to the coordinate, but never by a tenth of a voxel."""
 
 MAX_ORIGIN_MM = 1e5
-"""Largest coordinate of a volume's origin, mm (100 m): scanner frames lie within metres of their isocentre. A NaN
-origin hung the foreground search; one of 1e9 mm left float64 too few digits for the pose (48 mm off)."""
+"""Largest coordinate of a volume's origin, mm (100 m): scanner frames lie within metres of their isocentre. See
+docs/design_notes/io.md."""
 
 
 def _read_file(name: str, filename: str, max_bytes: int | None) -> sitk.Image:

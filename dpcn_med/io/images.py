@@ -54,7 +54,8 @@ def read_image(path: str | os.PathLike, *, max_bytes: int | None = None) -> sitk
 
 
 _LABEL_MAP_PIXELS = (sitk.sitkLabelUInt8, sitk.sitkLabelUInt16, sitk.sitkLabelUInt32, sitk.sitkLabelUInt64)
-"""SimpleITK's run-length label maps: ``GetArrayFromImage`` on one aborts the process (SIGABRT), not raises."""
+"""SimpleITK's run-length label-map pixel types, refused or converted before any voxel is read. See
+docs/design_notes/io.md."""
 
 
 def check_volume(image: sitk.Image, name: str = "image") -> sitk.Image:

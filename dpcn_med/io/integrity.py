@@ -1,8 +1,8 @@
 """Whether a file holds all it should: truncation and corruption forensics of NIfTI, Analyze, MetaImage and gzip,
 and a file's SHA-256 digest.
 
-SimpleITK reads several cut or corrupt files without an error; these checks run before it reads the voxels and
-raise :class:`InputError` naming what is missing.
+SimpleITK reads several cut or corrupt files without an error (see docs/design_notes/io.md); these checks run before
+it reads the voxels and raise :class:`InputError` naming what is missing.
 """
 
 from __future__ import annotations
@@ -75,10 +75,11 @@ def _nifti_header_bytes(filename: str) -> int | None:
 
 
 def _check_complete(path: Path) -> None:
-    """Raise if the file holds fewer voxel bytes than its header promises.
+    """Raise if the file (NIfTI, Analyze or MetaImage; NRRD's reader checks itself) holds fewer voxel bytes than its
+    header promises, or would be misread: a .nii beside the .nii.gz asked for, a .nii.gz that is not gzip, or what
+    :func:`_check_nifti` refuses.
 
-    SimpleITK 2.5 reads a truncated .nii or .nii.gz without an error and fills the missing voxels with zeros, and
-    reports a truncated MetaImage as "No such file or directory"; NRRD's reader says what is missing itself.
+    See docs/design_notes/io.md.
     """
     lower = path.name.lower()
     if lower.endswith(".nii.gz"):
@@ -101,10 +102,10 @@ def _check_complete(path: Path) -> None:
 
 
 def _check_nifti(path: Path, *, compressed: bool) -> None:
-    """Raise if a NIfTI file is truncated or holds non-finite voxels.
+    """Raise if a NIfTI file is truncated, holds non-finite voxels, has a voxel size of 0 or disagreeing qform and
+    sform.
 
-    Both go unnoticed otherwise: SimpleITK 2.5 zero-fills the missing voxels and reads NaN and infinite voxels as 0
-    (measured).
+    See docs/design_notes/io.md.
     """
     import nibabel  # imported here: only NIfTI files need it
 
@@ -141,7 +142,7 @@ def _check_nifti(path: Path, *, compressed: bool) -> None:
 
 def _check_analyze(path: Path) -> None:
     """Raise if the voxel file of a ``.hdr`` / ``.img`` pair (Analyze, or NIfTI as a pair) is missing or shorter than
-    its header needs: SimpleITK reads a cut ``.img`` zero-filled, with no error (measured: half the voxels 0)."""
+    its header needs. See docs/design_notes/io.md."""
     import nibabel  # imported here: only these files need it
 
     voxels = path.with_suffix(".img")
@@ -159,13 +160,15 @@ def _check_analyze(path: Path) -> None:
 
 
 def _check_nifti_forms(path: Path, header: Any, shape: tuple[int, ...]) -> None:
-    """Refuse a NIfTI header whose qform and sform are both set but place the volume differently: readers disagree
-    on which wins (measured: SimpleITK took the qform, nibabel, and so the tools built on it, the sform, 36 mm
-    apart), so any result would be right for one and wrong for the other.
+    """Refuse a NIfTI header whose qform and sform are both set but place the volume differently: some corner of the
+    grid more than 0.1 mm plus 2 mrad of its distance from voxel 0 apart.
 
-    Each corner of the grid may be off by 0.1 mm plus 2 mrad of its distance from voxel 0: the qform's rotation is a
-    float32 quaternion, and for an oblique volume saved from LPS (a rotation near 180 degrees) writers' own rounding
-    tilts it by up to 1.2 mrad (measured, SimpleITK; 0.43 mm at the far corner of a 360 x 360 x 300 mm grid).
+    Args:
+        path: the file, for messages.
+        header: its nibabel NIfTI header.
+        shape: the grid's size in voxels, three axes.
+
+    See docs/design_notes/io.md.
     """
     qform, q_code = header.get_qform(coded=True)
     sform, s_code = header.get_sform(coded=True)

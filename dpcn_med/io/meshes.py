@@ -29,9 +29,9 @@ def read_mesh(path: str | os.PathLike) -> pyvista.PolyData:
 
     3D Slicer records the coordinate system of a saved model in the file: ``SPACE=RAS`` or ``SPACE=LPS`` in the
     header text (.vtk's header line, .stl's header or ``solid`` line, a .ply or .obj comment), or a field-data string
-    array ``SPACE`` (.vtp). A model marked ``SPACE=RAS`` (older Slicer, or chosen on saving) is returned with x and y
-    negated (a rotation by 180 degrees about z, so the surface stays right-handed, normals included); one marked
-    ``SPACE=LPS`` or not marked at all is returned as stored, which is LPS as in Slicer >= 4.11.
+    array ``SPACE`` (.vtp). A model marked ``SPACE=RAS`` is returned with x and y negated (a rotation by 180 degrees
+    about z, so the surface stays right-handed, normals included); one marked ``SPACE=LPS`` or not marked at all is
+    returned as stored, taken as LPS. See docs/design_notes/io.md.
 
     Args:
         path: .stl, .vtk, .vtp, .ply or .obj. A volumetric .vtk mesh becomes its outer surface.
@@ -82,9 +82,10 @@ def _mesh_space(name: str, mesh: pyvista.DataSet) -> str | None:
     """The coordinate system ``name`` declares as Slicer writes it, ``"RAS"`` or ``"LPS"``; None when it says nothing.
 
     A field-data string array ``SPACE`` (Slicer's .vtp) wins; otherwise the first ``SPACE=...`` in the file's first
-    4 KB, read as bytes (the header of .vtk, .stl, .ply and .obj files Slicer writes). The header is parsed by hand
-    because ``pyvista.read`` hides its VTK reader and the readers expose it inconsistently (``GetHeader`` for .vtk
-    and .stl, ``GetComments`` for .ply, ``GetComment`` for .obj, which depend on the VTK version).
+    4 KB, read as bytes (the header of .vtk, .stl, .ply and .obj files Slicer writes). See docs/design_notes/io.md.
+
+    Raises:
+        InputError: the file declares a ``SPACE`` other than RAS or LPS.
     """
     if "SPACE" in mesh.field_data:
         values = np.asarray(mesh.field_data["SPACE"]).ravel()

@@ -66,11 +66,14 @@ def write_transform(transform: sitk.Transform, path: str | os.PathLike) -> None:
 
 
 def _check_transform_text(name: str) -> None:
-    """Refuse an ITK text transform file whose parameters ITK would misread, before it reads them.
+    """Refuse an ITK text transform file whose parameters ITK would misread, before it reads them: a ``Parameters``
+    or ``FixedParameters`` value that is not a finite number, or a linear transform with another number of
+    ``Parameters`` than its class takes. HDF5 files pass.
 
-    ITK stops at the first token of a ``Parameters:`` line that is not a number (``nan``, ``abc``) and keeps what it
-    read; when a linear transform then has fewer parameters than its class, it reads past them, and the process dies
-    of heap corruption ("corrupted size vs. prev_size"), or goes on with values from uninitialised memory.
+    Raises:
+        InputError: such a file, or one that cannot be opened.
+
+    See docs/design_notes/io.md.
     """
     try:
         with open(name, "rb") as file:
@@ -102,8 +105,8 @@ def _check_transform_text(name: str) -> None:
 
 def _linear_parameter_count(kind: str | None) -> int | None:
     """How many parameters a linear ITK transform class named ``kind`` (``Euler3DTransform_double_3_3``) takes;
-    ``None`` for classes whose count depends on the file (B-splines, fields) or that SimpleITK lacks. (Fixed
-    parameters are left to ITK, which refuses too few and takes 3 or 4 for Euler3DTransform.)"""
+    ``None`` for classes whose count depends on the file (B-splines, fields) or that SimpleITK lacks. Fixed
+    parameters are not counted: see docs/design_notes/io.md."""
     match = re.fullmatch(r"(\w+?)_(?:double|float)_3_3", (kind or "").strip())
     if match is None:  # another dimension (ReadTransform says so) or an unknown layout
         return None
