@@ -149,7 +149,7 @@ def model_identity(model: str) -> str | dict[str, str]:
     for kind, path in zip(("weights", "config"), model_paths(model)):
         identity[kind] = os.path.realpath(path)
         with contextlib.suppress(OSError):
-            identity[f"{kind}_sha256"] = _file_sha256(path)
+            identity[f"{kind}_sha256"] = io.file_sha256(path)
     return identity
 
 
@@ -277,12 +277,3 @@ def _write_staged(output: Path, begun: float, outputs: tuple[str, ...], write: C
                 except OSError:
                     break
 
-
-def _file_sha256(path) -> str:
-    import hashlib
-
-    digest = hashlib.sha256()
-    with open(path, "rb") as file:  # in blocks: hashlib.file_digest is Python 3.11's, and 3.10 is supported
-        for block in iter(lambda: file.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()

@@ -257,13 +257,30 @@ def load_feature_model(model: str | os.PathLike | None, bandwidth: int | None, d
                          f"NAME), or None or 'none' for the learning-free solver")
     if os.fspath(model).lower() in LEARNING_FREE:
         return None
-    from dpcn_med.models import load_model
-
-    network = load_model(model, device=device)
+    network = _loaded_model(model, device)
     if bandwidth is not None and network.config.bandwidth != bandwidth:
         raise InputError(f"{model}: this model was trained at bandwidth {network.config.bandwidth}; register with "
                          f"bandwidth={network.config.bandwidth} (--bandwidth {network.config.bandwidth})")
     return network
+
+
+_LOADED: dict[tuple, DPCN] = {}
+"""The model last loaded, by its files' SHA-256 and its device: the registrations of a batch (or of a Dask worker)
+load it once. A model is only ever evaluated here, so one instance serves every registration."""
+
+
+def _loaded_model(model: str | os.PathLike, device: torch.device) -> DPCN:
+    from dpcn_med.models import load_model
+    from dpcn_med.models.weights import model_paths
+
+    try:
+        key = (*(io.file_sha256(path) for path in model_paths(model)), str(device))
+    except (OSError, InputError):  # missing or unreadable files: load_model says what is wrong
+        return load_model(model, device=device)
+    if key not in _LOADED:
+        _LOADED.clear()  # one model at a time: a cohort uses one
+        _LOADED[key] = load_model(model, device=device)
+    return _LOADED[key]
 
 
 def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model: str | os.PathLike | None = None,

@@ -108,13 +108,12 @@ class TestLocalCluster:
         output = tmp_path / "out"
         finished = []
 
-        def interrupt_after_two(job, row, error) -> None:
+        def interrupt_after_one(job, row, error) -> None:  # two pairs running then, the fourth waiting
             finished.append(job.id)
-            if len(finished) == 2:
-                raise KeyboardInterrupt
+            raise KeyboardInterrupt
 
         with pytest.raises(KeyboardInterrupt):
-            run_batch(plan_batch(pairs, output, settings=SETTINGS), on_row=interrupt_after_two, workers=2)
+            run_batch(plan_batch(pairs, output, settings=SETTINGS), on_row=interrupt_after_one, workers=2)
         assert set(_statuses(output)) == set(finished)
         # A pair that a worker was finishing as the client stopped may be written too; either way, once.
         done = {f"p{i}" for i in range(4) if (output / f"p{i}" / "report.json").exists()}

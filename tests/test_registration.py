@@ -242,6 +242,25 @@ class TestLearnedModel:
                                    homogeneous_matrix(plain.dpc_transform), atol=1e-3)
         assert plain.model == "learning-free"
 
+    def test_a_model_is_loaded_once_for_its_registrations(self, tmp_path, monkeypatch):
+        """A batch (or a Dask worker) registers many pairs with one model: its files are read once, and again only
+        when their contents change."""
+        import dpcn_med.models
+
+        loads, load = [], dpcn_med.models.load_model
+        monkeypatch.setattr(dpcn_med.models, "load_model", lambda *args, **kwargs: loads.append(1) or load(*args,
+                                                                                                          **kwargs))
+        torch.manual_seed(0)
+        save_model(DPCN(ModelConfig(bandwidth=16, channels=(4, 8, 16), residual_units=0)), tmp_path / "model")
+        fixed = mni_2mm()
+        first = register(fixed, fixed, model=tmp_path / "model", bandwidth=16, refine=False)
+        again = register(fixed, fixed, model=str(tmp_path / "model.json"), bandwidth=16, refine=False)
+        assert len(loads) == 1 and again.confidence == first.confidence
+        torch.manual_seed(1)
+        save_model(DPCN(ModelConfig(bandwidth=16, channels=(4, 8, 16), residual_units=0)), tmp_path / "model")
+        register(fixed, fixed, model=tmp_path / "model", bandwidth=16, refine=False)
+        assert len(loads) == 2
+
     def test_the_model_s_grid_preprocessing_is_used(self, tmp_path):
         """A model trained on grids whose foreground spans 0.6 of the side gets such grids (finer spacing than the
         defaults' 0.5), unless the caller passes other settings."""
