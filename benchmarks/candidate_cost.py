@@ -6,7 +6,7 @@ The quick mode's pairs and poses of `dpcn-med benchmark` (MNI T1 to itself and t
 bin); the settings register every pose in turn, ``--repeats`` times; medians of the wall-clock time, success (TRE
 under 2 mm) and the number of starts offered to the refinement (those without overlap are dropped at once).
 
-    python benchmarks/candidate_cost.py                 # about 5 minutes on 2 CPU cores
+    python benchmarks/candidate_cost.py                 # run time: docs/design_notes/benchmark.md
 """
 
 from __future__ import annotations

@@ -79,6 +79,9 @@ def difference(a: sitk.Transform, b: sitk.Transform, corners: np.ndarray) -> tup
 
 
 def exhaustive_search(fixed: sitk.Image, moving: sitk.Image, starts: int) -> tuple[list[dict], sitk.Transform]:
+    """Mattes MI (:data:`BASELINE_REFINEMENT`) from ``starts`` rotations (the cube's, then seeded uniform ones), the
+    foreground centres aligned: every run (``start``, ``transform``, ``metric``) and the transform of the lowest
+    metric."""
     preprocessing, refinement = Preprocessing(), BASELINE_REFINEMENT
     fixed_prepared = prepare(fixed, config=preprocessing)
     moving_centre = foreground_box(moving)[0]
@@ -102,22 +105,12 @@ def exhaustive_search(fixed: sitk.Image, moving: sitk.Image, starts: int) -> tup
     return runs, best["transform"]
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--resolution", default="1p5mm", choices=("1p0mm", "1p5mm", "3p0mm"))
-    parser.add_argument("--model", default="none", help="'none' (learning-free) or a trained model")
-    parser.add_argument("--bandwidth", type=int, default=32)
-    parser.add_argument("--starts", type=count_type(), default=96)
-    parser.add_argument("--rotations", type=count_type(0), default=20)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "mridir_reference.md")
-    args = parser.parse_args(argv)
-    fixed = sitk.ReadImage(str(DATA / f"mridir_t2_{args.resolution}.nii.gz"))
-    moving = sitk.ReadImage(str(DATA / f"mridir_ct_{args.resolution}.nii.gz"))
-    corners = foreground_corners(fixed)
-
+def reference_alignment(fixed: sitk.Image, moving: sitk.Image, starts: int, corners: np.ndarray) -> dict:
+    """The reference (:func:`exhaustive_search`) and how it was found: ``reference``, ``starts`` run, ``seconds``,
+    ``reached`` (valid starts), ``reaching`` (those ending within 3 degrees and 3 mm of it), and the ``local_angle``
+    and ``local_distance`` to it of a single local search from the image centres."""
     began = time.perf_counter()
-    runs, reference = exhaustive_search(fixed, moving, args.starts)
+    runs, reference = exhaustive_search(fixed, moving, starts)
     search_seconds = time.perf_counter() - began
     reached = [difference(r["transform"], reference, corners) for r in runs if r["metric"] is not None]
     reaching = sum(a < 3 and d < 3 for a, d in reached)
@@ -127,7 +120,15 @@ def main(argv: list[str] | None = None) -> int:
     mask = sitk.BinaryDilate(prepare(fixed).foreground, [BASELINE_REFINEMENT.mask_margin_voxels] * 3)
     local = refine_transform(fixed, moving, centre_start, (mask, None), BASELINE_REFINEMENT)
     local_angle, local_distance = difference(local, reference, corners)
+    return {"reference": reference, "starts": len(runs), "seconds": search_seconds, "reached": len(reached),
+            "reaching": reaching, "local_angle": local_angle, "local_distance": local_distance}
 
+
+def turned_registrations(fixed: sitk.Image, moving: sitk.Image, reference: sitk.Transform, corners: np.ndarray,
+                         args: argparse.Namespace) -> list[dict]:
+    """``dpcn_med.register`` from the stored pose and from ``args.rotations`` random turns of ``moving`` about its
+    foreground centre: per start, the angle and largest corner distance to the reference (turned alike), the
+    confidence and the seconds."""
     rows = []
     rng = torch.Generator().manual_seed(args.seed)
     extra = [np.eye(3)] + list(random_rotation(args.rotations, rng).numpy())
@@ -147,14 +148,20 @@ def main(argv: list[str] | None = None) -> int:
         rows.append({"start": "stored pose" if index == 0 else f"+ rotation {start_angle:.0f} deg", "angle": angle,
                      "distance": distance, "confidence": result.confidence, "seconds": seconds})
         print(f"{rows[-1]}", file=sys.stderr)
+    return rows
+
+
+def report(search: dict, rows: list[dict], args: argparse.Namespace, argv: list[str] | None) -> str:
+    """The Markdown page: the reference alignment, then dpcn_med's table."""
     within = sum(r["angle"] < 3 and r["distance"] < 3 for r in rows)
+    local_angle, local_distance = search["local_angle"], search["local_distance"]
     lines = ["# MRI-DIR CT onto T2 against an exhaustive mutual-information search\n",
              f"{generated_by(__file__, argv)}; MRI-DIR porcine phantom, {args.resolution}, the CT moving onto the T2 "
              f"as stored (unrelated scanner frames). Distances are the largest over the corners of the T2 "
              f"foreground's bounding box.\n",
              "## Reference alignment\n",
-             f"Mattes MI (dpcn_med's refinement) from {starts_text(len(runs))}, foreground centres aligned: "
-             f"{search_seconds:.0f} s; {reaching} of {len(reached)} starts "
+             f"Mattes MI (dpcn_med's refinement) from {starts_text(search['starts'])}, foreground centres aligned: "
+             f"{search['seconds']:.0f} s; {search['reaching']} of {search['reached']} starts "
              f"end within 3 degrees and 3 mm of the best. A single local search from the image centres ends "
              f"{local_angle:.1f} degrees and {local_distance:.1f} mm away from it"
              f"{' (a wrong optimum)' if local_angle > 3 or local_distance > 3 else ''}.\n",
@@ -165,8 +172,25 @@ def main(argv: list[str] | None = None) -> int:
              "|---|---|---|---|---|"]
     lines += [f"| {r['start']} | {r['angle']:.2f} | {r['distance']:.2f} | {r['confidence']:.3f} | "
               f"{r['seconds']:.1f} |" for r in rows]
-    text = "\n".join(lines) + "\n"
-    return publish(text, args.output)
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--resolution", default="1p5mm", choices=("1p0mm", "1p5mm", "3p0mm"))
+    parser.add_argument("--model", default="none", help="'none' (learning-free) or a trained model")
+    parser.add_argument("--bandwidth", type=int, default=32)
+    parser.add_argument("--starts", type=count_type(), default=96)
+    parser.add_argument("--rotations", type=count_type(0), default=20)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "mridir_reference.md")
+    args = parser.parse_args(argv)
+    fixed = sitk.ReadImage(str(DATA / f"mridir_t2_{args.resolution}.nii.gz"))
+    moving = sitk.ReadImage(str(DATA / f"mridir_ct_{args.resolution}.nii.gz"))
+    corners = foreground_corners(fixed)
+    search = reference_alignment(fixed, moving, args.starts, corners)
+    rows = turned_registrations(fixed, moving, search["reference"], corners, args)
+    return publish(report(search, rows, args, argv), args.output)
 
 
 if __name__ == "__main__":

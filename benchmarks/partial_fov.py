@@ -59,7 +59,8 @@ CASES = {
     "mr-mr": "seg3d T1 MR slab (fixed) to the whole seg3d T1 MR (moving)",
 }
 BASELINES = ["sitk-geometry", "sitk-moments", "sitk-exhaustive", "ants-rigid", "elastix-rigid"]
-"""The local tools of ``dpcn-med benchmark``'s quick mode (ANTs' multi-start, 25 s a pair, only on request)."""
+"""The local tools of ``dpcn-med benchmark``'s quick mode (ANTs' multi-start only on request; its cost:
+docs/design_notes/benchmark.md)."""
 SAME_POSES = "dpcn-baseline-poses"
 """The method name of dpcn_med's rows restricted to the poses the baselines ran (:func:`on_baseline_poses`)."""
 SAME_POSES_LABEL = ", on the baselines' poses"
@@ -258,7 +259,8 @@ def figure(rows: list[dict], curves: list[tuple[str, str]], path: Path) -> None:
     plt.close(figure_)
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The script's options."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     parser.add_argument("--overlaps", nargs="+", type=overlap_type, default=[1.0, 0.8, 0.6, 0.4],
@@ -282,6 +284,38 @@ def main(argv: list[str] | None = None) -> int:
                         help="run nothing: the tables and figure of earlier runs' per-pose CSVs (say, one per case, "
                              "run side by side on separate cores, or variants with their own --label); with --output "
                              "and --note only")
+    return parser
+
+
+def run_all(args: argparse.Namespace, methods: list[str]) -> list[dict]:
+    """Every case of ``args`` with ``methods``, each row labelled (``args.label`` for dpcn_med's), also written to the
+    per-registration CSV beside ``args.output`` for ``--combine``."""
+    solver = (SolverConfig(sphere_band=tuple(args.sphere_band), extra_sphere_bands=()) if args.sphere_band
+              else None)
+    settings = {"bandwidth": args.bandwidth, "solver": solver, "preprocessing": Preprocessing(fill=args.fill)}
+    rows = [{**row, "label": args.label if row["method"] == "dpcn" else METHODS[row["method"]][0]}
+            for case in args.cases
+            for row in run(case, args.overlaps, args.trials, args.seed, methods, args.baseline_trials, **settings)]
+    write_csv(rows, args.output.with_suffix(".csv"))  # every registration, for --combine
+    return rows
+
+
+def description(args: argparse.Namespace, argv: list[str] | None, same: list[dict], missing: list[str]) -> str:
+    """The page's title and paragraph, and the figure's link."""
+    return (f"# Partial field of view\n\n{generated_by(__file__, argv)}: a slab of the fixed volume "
+            f"along a random voxel axis keeping the given share of its foreground's extent, the moving volume whole "
+            f"and moved by a random rigid pose (rotation uniform over SO(3), translation up to 40 mm); "
+            f"`dpcn_med.register` with the command line's defaults unless the label says otherwise, the local "
+            f"baselines (`dpcn-med benchmark`'s settings) on the first poses of each cell; success is a TRE under "
+            f"{SUCCESS_MM:g} mm over the slab foreground's corners; times on a shared CPU."
+            + (" dpcn_med \"on the baselines' poses\": its results on those poses alone." if same else "")
+            + (f" Not installed, left out: {', '.join(missing)}." if missing else "")
+            + (f" {args.note}" if args.note else "")
+            + f"\n\n![success against overlap]({args.output.with_suffix('.png').name})\n\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     check_overlaps(parser, args.overlaps)
     if args.combine:
@@ -299,27 +333,11 @@ def main(argv: list[str] | None = None) -> int:
         except InputError as error:
             parser.error(str(error))
     else:
-        solver = (SolverConfig(sphere_band=tuple(args.sphere_band), extra_sphere_bands=()) if args.sphere_band
-                  else None)
-        settings = {"bandwidth": args.bandwidth, "solver": solver, "preprocessing": Preprocessing(fill=args.fill)}
-        rows = [{**row, "label": args.label if row["method"] == "dpcn" else METHODS[row["method"]][0]}
-                for case in args.cases
-                for row in run(case, args.overlaps, args.trials, args.seed, methods, args.baseline_trials, **settings)]
-        write_csv(rows, args.output.with_suffix(".csv"))  # every registration, for --combine
+        rows = run_all(args, methods)
     same = on_baseline_poses(rows)
     rows += same
     lines_of = series(rows)
-    text = (f"# Partial field of view\n\n{generated_by(__file__, argv)}: a slab of the fixed volume "
-            f"along a random voxel axis keeping the given share of its foreground's extent, the moving volume whole "
-            f"and moved by a random rigid pose (rotation uniform over SO(3), translation up to 40 mm); "
-            f"`dpcn_med.register` with the command line's defaults unless the label says otherwise, the local "
-            f"baselines (`dpcn-med benchmark`'s settings) on the first poses of each cell; success is a TRE under "
-            f"{SUCCESS_MM:g} mm over the slab foreground's corners; times on a shared CPU."
-            + (" dpcn_med \"on the baselines' poses\": its results on those poses alone." if same else "")
-            + (f" Not installed, left out: {', '.join(missing)}." if missing else "")
-            + (f" {args.note}" if args.note else "")
-            + f"\n\n![success against overlap]({args.output.with_suffix('.png').name})\n\n"
-            + table(rows, lines_of))
+    text = description(args, argv, same, missing) + table(rows, lines_of)
     figure(rows, lines_of, args.output.with_suffix(".png"))  # after the table: a failing table leaves the figure as was
     return publish(text, args.output)
 

@@ -4,7 +4,7 @@
 20% of the grid, scale 0.8-1.2 in similarity mode) and registered back. 2-D: 256 x 256 axial slices, angle uniform in
 [0, 360), scale 0.8-1.2, translation up to 50 px. Success thresholds are the solver issue's.
 
-    python benchmarks/solver_accuracy.py               # 100 poses per row (about 10 minutes on 2 CPU cores)
+    python benchmarks/solver_accuracy.py               # 100 poses per row (run time: docs/design_notes/benchmark.md)
     python benchmarks/solver_accuracy.py --poses 10    # a quick look
 """
 

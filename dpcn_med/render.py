@@ -98,7 +98,7 @@ def before_after(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Tr
         title: shown above the two panels.
 
     Raises:
-        InputError: ``path`` does not end in ``.png`` (pyvista raised a bare ValueError, or wrote a JPEG for .jpg).
+        InputError: ``path`` does not end in ``.png`` (docs/design_notes/report.md), or pyvista is not installed.
     """
     if Path(path).suffix.lower() != ".png":
         raise InputError(f"render path {path} must end in .png")

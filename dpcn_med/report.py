@@ -49,7 +49,7 @@ CONTOUR_COLOURS = ("#ffe600", "#ff2bd6")
 """One bright colour per contour level, in increasing intensity, readable on greyscale."""
 STATISTICS_SIDE = 128
 """Images are subsampled to at most this many voxels per side for percentiles, thresholds and the foreground
-centre: their estimates barely change, and full-resolution passes over a 256^3 volume would cost seconds."""
+centre (why: docs/design_notes/report.md)."""
 
 
 def registration_report(result: RegistrationResult, *, fixed: str | os.PathLike | sitk.Image,
@@ -208,14 +208,34 @@ def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
     moving_window = _window(moving_small, foreground_mask(moving_small))
     levels = _contour_levels(moving_small)
 
-    fixed_planes, before, after = overview_planes(fixed, moving, fixed_to_moving, centre, extent)
+    planes = overview_planes(fixed, moving, fixed_to_moving, centre, extent)
 
     columns, rows = len(PLANE_AXES), len(OVERVIEW_ROWS)
     width_in = 10.0
     figure = Figure(figsize=(width_in, width_in * (rows + 0.35) / (columns + 0.15)), facecolor="black")
     figure.subplots_adjust(left=0.05, right=0.995, bottom=0.005, top=1 - 0.35 / (rows + 0.35), wspace=0.03,
                            hspace=0.03)
-    axes = figure.subplots(rows, columns, squeeze=False)
+    _draw_panels(figure.subplots(rows, columns, squeeze=False), planes, (fixed_window, moving_window), levels)
+    centre_text = ", ".join(f"{c:.1f}" for c in centre)
+    subtitle = f"planes through ({centre_text}) mm LPS, field of view {extent:.0f} mm"
+    # parse_math off: a file name holding two $ was read as TeX and a parse error lost the whole registration.
+    figure.suptitle(f"{title}\n{subtitle}" if title else subtitle, color="white", fontsize=13, parse_math=False)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, format="png", dpi=OVERVIEW_WIDTH_PX / width_in, facecolor="black")
+
+
+def _draw_panels(axes: np.ndarray, planes: tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]],
+                 windows: tuple[tuple[float, float], tuple[float, float]], levels: Sequence[float]) -> None:
+    """The overview's panels (:data:`OVERVIEW_ROWS` by :data:`PLANE_AXES`) into ``axes``, with their labels.
+
+    Args:
+        axes: ``(rows, columns)`` matplotlib axes.
+        planes: ``(fixed, before, after)`` of :func:`overview_planes`.
+        windows: the display windows of the fixed and the moving image (:func:`_window`).
+        levels: the moving image's contour levels (:func:`_contour_levels`).
+    """
+    fixed_planes, before, after = planes
+    fixed_window, moving_window = windows
     for column, plane_name in enumerate(PLANE_AXES):
         fixed_grey = _normalised(fixed_planes[column], fixed_window)
         for row, moving_plane in enumerate((before[column], after[column])):
@@ -224,7 +244,7 @@ def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
         axes[2, column].imshow(_checkerboard(fixed_grey, _normalised(after[column], moving_window)), cmap="gray",
                                vmin=0.0, vmax=1.0, interpolation="nearest")
         axes[0, column].set_title(plane_name, color="white", fontsize=12)
-        for row in range(rows):
+        for row in range(len(OVERVIEW_ROWS)):
             _label_edges(axes[row, column], PLANE_EDGE_LABELS[plane_name])
     for row, label in enumerate(OVERVIEW_ROWS):
         axes[row, 0].set_ylabel(label, color="white", fontsize=12)
@@ -233,12 +253,6 @@ def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
         ax.set_yticks([])
         for spine in ax.spines.values():
             spine.set_color("#555555")
-    centre_text = ", ".join(f"{c:.1f}" for c in centre)
-    subtitle = f"planes through ({centre_text}) mm LPS, field of view {extent:.0f} mm"
-    # parse_math off: a file name holding two $ was read as TeX and a parse error lost the whole registration.
-    figure.suptitle(f"{title}\n{subtitle}" if title else subtitle, color="white", fontsize=13, parse_math=False)
-    with atomic_output(path) as temporary:
-        figure.savefig(temporary, format="png", dpi=OVERVIEW_WIDTH_PX / width_in, facecolor="black")
 
 
 def _subsampled(image: sitk.Image) -> sitk.Image:
@@ -249,8 +263,7 @@ def _subsampled(image: sitk.Image) -> sitk.Image:
 
 def _window(image: sitk.Image, foreground: sitk.Image) -> tuple[float, float]:
     """Display window: the :data:`WINDOW_PERCENTILES` of the intensities on the image's ``foreground`` (of all, when
-    it is empty), never empty. Over the whole image, a small object in a large field of view got (0, 1e-6), every
-    tissue white, and a CT's -2048 HU padding pressed soft tissue into 7% of the grey range."""
+    it is empty), never empty (why the foreground: docs/design_notes/report.md)."""
     values = sitk.GetArrayViewFromImage(image)
     inside = sitk.GetArrayViewFromImage(foreground).astype(bool)
     low, high = np.percentile(values[inside] if inside.any() else values, WINDOW_PERCENTILES)

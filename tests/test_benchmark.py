@@ -79,8 +79,8 @@ class TestRunBenchmark:
     def test_a_run_of_some_bins_registers_the_poses_of_a_run_of_every_bin(self, tmp_path, monkeypatch):
         config = BenchmarkConfig(cases=("mni",), methods=("dpcn-global",), bins=((0, 30), (60, 90), (150, 180)))
         poses: list[tuple[float, ...]] = []
-        moved_copy_ = benchmark.moved_copy
-        monkeypatch.setattr(benchmark, "moved_copy", lambda image, truth: (
+        moved_copy_ = benchmark.runner.moved_copy
+        monkeypatch.setattr(benchmark.runner, "moved_copy", lambda image, truth: (
             poses.append(truth.GetParameters()), moved_copy_(image, truth))[1])
         every = run_benchmark(config)
         some = run_benchmark(replace(config, run_bins=("60-90",)))
@@ -186,7 +186,7 @@ class TestRunBenchmark:
         assert "exists and is not a folder" in capsys.readouterr().err
 
         # Without antspyx: asked for by name, refused; among the default methods, left out and said so.
-        monkeypatch.setattr(benchmark, "available_methods", lambda: ("dpcn", "dpcn-global"))
+        monkeypatch.setattr(benchmark.runner, "available_methods", lambda: ("dpcn", "dpcn-global"))
         with pytest.raises(InputError, match=r"ants-rigid needs antspyx \(pip install 'dpcn_med\[benchmark\]'\)"):
             run_benchmark(replace(config, methods=("dpcn-global", "ants-rigid")))
         said: list[str] = []
@@ -228,7 +228,7 @@ class TestSummary:
             seeds.append(seed)
             raise InterruptedError  # the seed is all this test needs
 
-        monkeypatch.setattr(benchmark.sitk.ImageRegistrationMethod, "SetMetricSamplingPercentage", spy)
+        monkeypatch.setattr(benchmark.methods.sitk.ImageRegistrationMethod, "SetMetricSamplingPercentage", spy)
         image = mni_2mm()
         with pytest.raises(InterruptedError):
             benchmark.METHODS["sitk-exhaustive"][2](image, image, None)

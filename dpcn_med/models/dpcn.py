@@ -36,10 +36,9 @@ REQUIRED_KEYS = ("bandwidth", "channels", "residual_units", "modalities", "share
 """Keys a saved model config must hold: they define the network and its grids, so a default would describe another
 model than the weights (``solver`` may be absent: a config saved before it existed gets today's defaults)."""
 MAX_CHANNELS = 1024
-"""Most channels of a UNet level: the shipped configs use up to 128; a 3-D convolution between two levels of 1024
-already holds 28 M weights, and a typo of a few more digits built gigabytes before the weights were looked at."""
+"""Most channels of a UNet level (why this bound: docs/design_notes/models.md)."""
 MAX_RESIDUAL_UNITS = 8
-"""Most residual units per level (the shipped configs use 1), for the same reason."""
+"""Most residual units per level (why this bound: docs/design_notes/models.md)."""
 
 
 def _tuples(value):
@@ -221,8 +220,7 @@ class DPCN(nn.Module):
 
         Convention:
             Only the extractors may run in reduced precision: their features are cast back to the parameters' dtype
-            and the solver runs with autocast off, the caller's included (in bfloat16 its rotated direction grids
-            and SO(3) sums are off by degrees).
+            and the solver runs with autocast off, the caller's included (why: docs/design_notes/models.md).
 
         Raises:
             InputError: grids that are not tensors, not floating point, or not ``(B, 1, 2B, 2B, 2B)`` pairs.
@@ -277,9 +275,8 @@ class DPCN(nn.Module):
         (computed under bfloat16 autocast when ``amp``).
 
         Raises:
-            InputError: in eval mode, features holding NaN or Inf (finite weights can overflow float32, e.g. a gain of
-                3e38); the solver would otherwise return a NaN pose, or blame the image. Training skips the check,
-                which would synchronise a GPU on every step.
+            InputError: in eval mode, features holding NaN or Inf (training skips the check; why:
+                docs/design_notes/models.md).
         """
         with torch.autocast(volume.device.type, dtype=torch.bfloat16, enabled=amp):
             features = getattr(self, extractor)(volume)

@@ -88,6 +88,30 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
             NaN or Inf (as stored or as float32), or learned temperatures that are not finite and positive.
     """
     device = resolve_device(device)
+    weights, config = _existing_model_paths(path)
+    settings, model_config = _read_config(config)
+    metadata, shapes = io.read_tensor_header(weights)
+    if metadata.get("format", FORMAT) != FORMAT:
+        raise InputError(f"{weights}: weights of format {metadata['format']!r}; this version of dpcn_med reads "
+                         f"{FORMAT!r}")
+    model = _checked_model(weights, config, model_config, shapes)
+    if CONFIG_HASH in metadata and metadata[CONFIG_HASH] != config_hash(settings):  # same shapes, another training
+        raise InputError(f"{weights}: saved with another config than {config} (its {CONFIG_HASH} differs): the two "
+                         "files come from different models or trainings; keep the pair save_model wrote together")
+    tensors = io.read_tensors(weights)
+    _check_tensors(weights, model, tensors)
+    model.load_state_dict({**model.state_dict(), **tensors})
+    _check_temperatures(weights, model)
+    return model.to(device).eval()
+
+
+def _existing_model_paths(path: str | os.PathLike) -> tuple[Path, Path]:
+    """:func:`model_paths` of a model that exists (at least one of its files).
+
+    Raises:
+        InputNotFoundError: neither file exists.
+        InputError: as :func:`model_paths`, a pickled checkpoint, or a path the file system refuses.
+    """
     weights, config = model_paths(path)
     if os.fspath(path).lower().endswith(io.PICKLE_SUFFIXES):
         io.read_tensors(path)  # raises its message about pickles
@@ -98,6 +122,17 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
     if neither:  # the name is wrong, not one file of the pair lost
         raise InputNotFoundError(f"{os.fspath(path)}: no such model (neither {weights.name} nor {config.name} "
                                  f"exists in {weights.parent}); check the path")
+    return weights, config
+
+
+def _read_config(config: Path) -> tuple[dict, ModelConfig]:
+    """The model's settings (the JSON's ``config``) and the :class:`ModelConfig` they make.
+
+    Raises:
+        InputNotFoundError: the file is missing.
+        InputError: a config from something else (a training checkpoint's is named as such), lacking its settings,
+            or with unusable values.
+    """
     description = io.read_json(config)
     if not isinstance(description, dict) or description.get("format") != FORMAT:
         # A training checkpoint (checkpoint.json: step, optimiser state) sits beside the model a run writes.
@@ -111,20 +146,20 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
         raise InputError(f"{config}: 'config' is a {type(settings).__name__}, expected a mapping of the model's "
                          "settings")
     try:
-        model_config = ModelConfig.from_json(settings)
+        return settings, ModelConfig.from_json(settings)
     except InputError as error:
         raise InputError(f"{config}: {error}") from None
     except (TypeError, ValueError, KeyError) as error:  # a value of the wrong type reaches arithmetic or MONAI
         raise InputError(f"{config}: unusable model config ({type(error).__name__}: {error})") from None
-    metadata, shapes = io.read_tensor_header(weights)
-    if metadata.get("format", FORMAT) != FORMAT:
-        raise InputError(f"{weights}: weights of format {metadata['format']!r}; this version of dpcn_med reads "
-                         f"{FORMAT!r}")
-    model = _checked_model(weights, config, model_config, shapes)
-    if CONFIG_HASH in metadata and metadata[CONFIG_HASH] != config_hash(settings):  # same shapes, another training
-        raise InputError(f"{weights}: saved with another config than {config} (its {CONFIG_HASH} differs): the two "
-                         "files come from different models or trainings; keep the pair save_model wrote together")
-    tensors = io.read_tensors(weights)
+
+
+def _check_tensors(weights: Path, model: DPCN, tensors: dict[str, torch.Tensor]) -> None:
+    """Refuse integer tensors where ``model`` has floats, and tensors holding NaN or Inf as stored or in ``model``'s
+    dtype.
+
+    Raises:
+        InputError: naming the tensor.
+    """
     for name, reference in unique_state(model).items():
         # load_state_dict would cast integers silently and keep NaN, and cast 1e300 in float64 to Inf: a model that
         # registers wrongly, confidently.
@@ -136,14 +171,20 @@ def load_model(path: str | os.PathLike, *, device: str | torch.device = "cpu") -
             raise InputError(f"{weights}: tensor {name} holds NaN or Inf values"
                              + (f" (as {str(reference.dtype).removeprefix('torch.')})"
                                 if tensor.dtype != reference.dtype else ""))
-    model.load_state_dict({**model.state_dict(), **tensors})
+
+
+def _check_temperatures(weights: Path, model: DPCN) -> None:
+    """Refuse learned temperatures that are not finite and positive.
+
+    Raises:
+        InputError: naming the stage.
+    """
     for stage, temperature in vars(model.temperatures()).items():
         # softplus(-200) is 0 in float32: a softmax dividing by it gives a NaN pose.
         value = float(temperature.detach())
         if not (math.isfinite(value) and value > 0):
             raise InputError(f"{weights}: the learned {stage} temperature is {value!r} (softplus of "
                              f"temperatures.raw.{stage}); expected a finite number > 0")
-    return model.to(device).eval()
 
 
 def _checked_model(weights: Path, config: Path, model_config: ModelConfig, shapes: dict[str, tuple[int, ...]]

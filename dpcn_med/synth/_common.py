@@ -12,8 +12,7 @@ from torch import Tensor
 from dpcn_med.errors import InputError
 
 MIN_SIZE = 4
-"""Fewest voxels along an axis (as :func:`dpcn_med.io.read_image` asks): one voxel divided by zero in the grids'
-coordinates, two gave a blank ultrasound."""
+"""Fewest voxels along an axis (as :func:`dpcn_med.io.read_image` asks; why: docs/design_notes/synth.md)."""
 
 
 def check_volumes(name: str, volumes: Tensor, *, cubic: bool = False) -> int:

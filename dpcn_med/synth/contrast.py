@@ -30,11 +30,10 @@ MAX_BIAS_ORDER = 10
 """Highest degree of a bias field: a coil's field is smooth, and ``(order + 1)^3`` coefficients are drawn."""
 
 MAX_SIGMA = 8.0
-"""Largest blur sigma, voxels: the kernel reaches ``3 sigma`` (time grows with it), and sigma 100 left a blank
-volume (peak 1e-5)."""
+"""Largest blur sigma, voxels: the kernel reaches ``3 sigma`` (time grows with it; docs/design_notes/synth.md)."""
 
 MAX_NOISE_STD = 1.0
-"""Largest noise standard deviation: on intensities in ``[0, 1]`` more is pure noise (1e30 gave a constant 1)."""
+"""Largest noise standard deviation: on intensities in ``[0, 1]`` more is pure noise (docs/design_notes/synth.md)."""
 
 
 @dataclass(frozen=True)
@@ -64,7 +63,11 @@ class ContrastConfig:
     rician: bool = True
 
     def __post_init__(self) -> None:
-        """Refuse what would make NaN or blank volumes (a NaN bias strength did), naming the field."""
+        """Refuse what would make NaN or blank volumes, naming the field.
+
+        Raises:
+            InputError: a value out of its range.
+        """
         check_integer("knots", self.knots, minimum=2, maximum=MAX_KNOTS)
         check_flag("monotonic", self.monotonic)
         check_real("bias_strength", self.bias_strength, minimum=0.0, maximum=MAX_BIAS_STRENGTH)

@@ -44,8 +44,11 @@ class CTTissues:
     noise_hu: float = 10.0
 
     def __post_init__(self) -> None:
-        """Refuse what would make a blank or wrong CT (a NaN noise zeroed it, a NaN cortex zeroed the bone), naming
-        the field."""
+        """Refuse what would make a blank or wrong CT (docs/design_notes/synth.md), naming the field.
+
+        Raises:
+            InputError: a value that is not finite or out of its range, or T1 ratios not increasing.
+        """
         for name in ("air", "csf", "grey_matter", "white_matter", "bone_surface", "bone_core"):
             check_real(name, getattr(self, name))
         for index, value in enumerate(check_sequence("soft_tissue", self.soft_tissue, length=2)):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -47,11 +48,10 @@ class UltrasoundConfig:
     scatter_gain: float = 0.2
 
     def __post_init__(self) -> None:
-        """Refuse what would make NaN or blank volumes, naming the field.
+        """Refuse what would make NaN or blank volumes, naming the field (the bounds: docs/design_notes/synth.md).
 
-        Measured on a 32^3 soft-tissue ball: a 1-degree cone or a 0.05 N reach images under 1% of it, a standoff of
-        10 N leaves it out of reach, and past an impedance gain of 30 (a change of 0.1 in the CT value already
-        reflects 82%) or an attenuation of 100 almost no echo comes back from inside it.
+        Raises:
+            InputError: a value out of its range, or both gains 0.
         """
         check_pair("half_angle_degrees", self.half_angle_degrees, minimum=5.0, maximum=89.0, equal=True)
         # A reach far past the grid spends the beam's N range samples outside it: (100, 100) gave a blank volume.
@@ -148,45 +148,88 @@ def simulated_ultrasound(ct: Tensor, generator: torch.Generator, *, probe: Tenso
     foreground = ct[:, 0] > 0
     if not bool(foreground.flatten(1).any(-1).all()):
         raise InputError("ct contains an empty volume (no voxel above 0); the probe needs an object to image")
-    batch = ct.shape[0]
+    points = affine_points((size,) * 3, torch.eye(3, device=ct.device, dtype=ct.dtype)[None])  # (1, N, N, N, 3)
+    fan = _placed_probe(ct, foreground, points, generator, probe, config)
+    echoes = _fan_echoes(ct, fan, config)
+    fan_index, inside = _fan_coordinates(points, fan, size)
+    fov_mask = inside.to(ct.dtype)[:, None]
+    rayleigh = math.sqrt(2.0 / math.pi) * torch.hypot(normal(generator, tuple(ct.shape), like=ct),
+                                                      normal(generator, tuple(ct.shape), like=ct))
+    return (sample(echoes, fan_index) * fov_mask * rayleigh).clamp(0.0, 1.0), fov_mask
+
+
+class _Probe(NamedTuple):
+    """A batch of probes in voxel coordinates ``(x, y, z)`` from the grid centre.
+
+    Attributes:
+        apex: ``(B, 3)`` where the beams start.
+        direction: ``(B, 3)`` unit axis of the cone.
+        across, up: ``(B, 3)`` unit lateral axes completing ``direction`` to a right-handed frame.
+        tan_half: ``(B,)`` tangent of the cone's half-angle.
+        reach: ``(B,)`` length of the beams, voxels.
+    """
+
+    apex: Tensor
+    direction: Tensor
+    across: Tensor
+    up: Tensor
+    tan_half: Tensor
+    reach: Tensor
+
+
+def _placed_probe(ct: Tensor, foreground: Tensor, points: Tensor, generator: torch.Generator, probe: Tensor | None,
+                  config: UltrasoundConfig) -> _Probe:
+    """The probes of :func:`simulated_ultrasound`: direction, half-angle and reach drawn (in that order), the apex on
+    the line along the direction through the object's centroid, ``config.standoff * N`` before its first voxel.
+
+    Args:
+        ct: ``(B, 1, N, N, N)``.
+        foreground: ``(B, N, N, N)`` bool, the object.
+        points: ``(1, N, N, N, 3)`` voxel coordinates of the grid.
+        generator, probe, config: as :func:`simulated_ultrasound` takes them.
+    """
+    batch, size = ct.shape[0], ct.shape[-1]
     direction = _probe_directions(probe, batch, generator, ct)
     across, up = _lateral_axes(direction)
     tan_half = torch.tan(torch.deg2rad(uniform(generator, (batch,), *config.half_angle_degrees, like=ct)))
     reach = (config.standoff + uniform(generator, (batch,), *config.depth_range, like=ct)) * size
-
-    points = affine_points((size,) * 3, torch.eye(3, device=ct.device, dtype=ct.dtype)[None])  # (1, N, N, N, 3)
     weights = foreground.to(ct.dtype)[..., None]
     centroid = (points * weights).sum((1, 2, 3)) / weights.sum((1, 2, 3))
     along = (points * direction[:, None, None, None]).sum(-1)
     entry = torch.where(foreground, along, math.inf).flatten(1).amin(-1)
     lateral = centroid - (centroid * direction).sum(-1, keepdim=True) * direction
     apex = lateral + (entry - config.standoff * size)[:, None] * direction
+    return _Probe(apex, direction, across, up, tan_half, reach)
 
-    # The fan: range along torch axis D, tangents of the beam's angle along H (up) and W (across).
+
+def _fan_echoes(ct: Tensor, fan: _Probe, config: UltrasoundConfig) -> Tensor:
+    """``(B, 1, N, N, N)`` echoes on the fan of ``N`` ranges (torch axis D) times ``N x N`` beam tangents (H: up,
+    W: across)."""
+    size = ct.shape[-1]
     ticks = torch.linspace(0.0, 1.0, size, device=ct.device, dtype=ct.dtype)
-    ranges = reach[:, None] * ticks
-    tangents = tan_half[:, None] * (2.0 * ticks - 1.0)
-    beams = (direction[:, None, None] + tangents[:, None, :, None] * across[:, None, None]
-             + tangents[:, :, None, None] * up[:, None, None])
+    ranges = fan.reach[:, None] * ticks
+    tangents = fan.tan_half[:, None] * (2.0 * ticks - 1.0)
+    beams = (fan.direction[:, None, None] + tangents[:, None, :, None] * fan.across[:, None, None]
+             + tangents[:, :, None, None] * fan.up[:, None, None])
     beams = beams / beams.norm(dim=-1, keepdim=True)
-    fan_points = apex[:, None, None, None] + ranges[:, :, None, None, None] * beams[:, None]
-    echoes = _echoes(sample(ct, fan_points), reach / ((size - 1) * size), config)
+    fan_points = fan.apex[:, None, None, None] + ranges[:, :, None, None, None] * beams[:, None]
+    return _echoes(sample(ct, fan_points), fan.reach / ((size - 1) * size), config)
 
-    # Back onto the grid: each voxel's range and tangents in the fan.
-    offset = points - apex[:, None, None, None]
-    axial = (offset * direction[:, None, None, None]).sum(-1)
+
+def _fan_coordinates(points: Tensor, fan: _Probe, size: int) -> tuple[Tensor, Tensor]:
+    """Each voxel's place in the fan of :func:`_fan_echoes`: ``(fan voxel coordinates (B, N, N, N, 3), inside the
+    cone of view (B, N, N, N) bool)``."""
+    offset = points - fan.apex[:, None, None, None]
+    axial = (offset * fan.direction[:, None, None, None]).sum(-1)
     safe_axial = torch.where(axial > 0, axial, 1.0)
-    tangent_across = (offset * across[:, None, None, None]).sum(-1) / safe_axial
-    tangent_up = (offset * up[:, None, None, None]).sum(-1) / safe_axial
+    tangent_across = (offset * fan.across[:, None, None, None]).sum(-1) / safe_axial
+    tangent_up = (offset * fan.up[:, None, None, None]).sum(-1) / safe_axial
     distance = offset.norm(dim=-1)
     per_sample = (-1, 1, 1, 1)
-    inside = ((axial > 0) & (tangent_across ** 2 + tangent_up ** 2 <= tan_half.reshape(per_sample) ** 2)
-              & (distance <= reach.reshape(per_sample)))
+    tan_half, reach = fan.tan_half.reshape(per_sample), fan.reach.reshape(per_sample)
+    inside = (axial > 0) & (tangent_across ** 2 + tangent_up ** 2 <= tan_half ** 2) & (distance <= reach)
     centre = grid_centre(size)
-    fan_index = torch.stack([(tangent_across / tan_half.reshape(per_sample) + 1.0) * (size - 1) / 2 - centre,
-                             (tangent_up / tan_half.reshape(per_sample) + 1.0) * (size - 1) / 2 - centre,
-                             distance / reach.reshape(per_sample) * (size - 1) - centre], -1)
-    fov_mask = inside.to(ct.dtype)[:, None]
-    rayleigh = math.sqrt(2.0 / math.pi) * torch.hypot(normal(generator, tuple(ct.shape), like=ct),
-                                                      normal(generator, tuple(ct.shape), like=ct))
-    return (sample(echoes, fan_index) * fov_mask * rayleigh).clamp(0.0, 1.0), fov_mask
+    fan_index = torch.stack([(tangent_across / tan_half + 1.0) * (size - 1) / 2 - centre,
+                             (tangent_up / tan_half + 1.0) * (size - 1) / 2 - centre,
+                             distance / reach * (size - 1) - centre], -1)
+    return fan_index, inside

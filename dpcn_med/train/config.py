@@ -127,7 +127,7 @@ class TrainConfig:
         device: ``auto``, ``cpu``, ``cuda`` (under torchrun, each process takes ``cuda:LOCAL_RANK``).
         log_every, validate_every, checkpoint_every: in steps.
         resume: continue from ``output/checkpoint`` when it exists (which must have been made with this model, data
-            and weight decay: :data:`dpcn_med.train.loop.MUST_MATCH_ON_RESUME`).
+            and weight decay: :data:`dpcn_med.train.checkpoint.MUST_MATCH_ON_RESUME`).
     """
 
     output: str = "runs/dpcn"

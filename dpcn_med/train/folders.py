@@ -269,8 +269,11 @@ def parse_rire_standard(text: str, source: str = "RIRE file") -> tuple[np.ndarra
 def _check_within(points: np.ndarray, image: sitk.Image, source: str) -> None:
     """Refuse "From" points ``(K, 3)`` (RIRE millimetres) outside the fixed image's extent, one voxel of slack.
 
-    RIRE's points are the corners of the "From" volume: past its fixed image, the file belongs to the other role (a
-    CT-to-MR file on an MR-to-CT pair gave the inverse ground truth, silently) or the image is a cropped copy.
+    RIRE's points are the corners of the "From" volume: past its fixed image, the file belongs to the other role or
+    the image is a cropped copy (docs/design_notes/training.md).
+
+    Raises:
+        InputError: naming the first point outside.
     """
     spacing = np.asarray(image.GetSpacing(), dtype=np.float64)
     extent = np.asarray(image.GetSize()) * spacing

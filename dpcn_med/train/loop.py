@@ -4,7 +4,8 @@ Single process, or one process per device under ``torchrun`` with DistributedDat
 pairs; rank 0 validates, logs and writes). Everything a run writes goes to ``config.output``:
 
 * ``checkpoint.safetensors`` + ``checkpoint.json``: weights and optimiser state, the step (in both), the config
-  (resumed from when ``config.resume``, if the config's :data:`MUST_MATCH_ON_RESUME` settings are the checkpoint's);
+  (resumed from when ``config.resume``, if the config's
+  :data:`~dpcn_med.train.checkpoint.MUST_MATCH_ON_RESUME` settings are the checkpoint's);
 * ``log.csv``: a row per logged step (losses, rate, pairs per second) and per validation (success, median errors);
 * ``training.png``: the losses and the validation success against steps;
 * ``model.safetensors`` + ``model.json``: the final model with its training record (:func:`dpcn_med.models.save_model`).
@@ -12,11 +13,10 @@ pairs; rank 0 validates, logs and writes). Everything a run writes goes to ``con
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -24,29 +24,19 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
-from dpcn_med import __version__, io
+from dpcn_med import io
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import geodesic_distance
 from dpcn_med.models import DPCN, DPCNOutput, pose_loss, save_model
-from dpcn_med.models.weights import unique_state
 from dpcn_med.solver import PoseTarget, SolveResult
 from dpcn_med.train import distributed
+from dpcn_med.train.checkpoint import load_checkpoint, save_checkpoint
 from dpcn_med.train.config import TrainConfig
 from dpcn_med.train.data import sample_pairs, validation_set, volume_bank
 from dpcn_med.train.folders import FolderPairs, collate_pairs, derived_seed
 
 SUCCESS_DEGREES, SUCCESS_VOXELS = 5.0, 2.0
 """A registration succeeds within 5 degrees and 2 voxels (the learning issue's criterion)."""
-
-MUST_MATCH_ON_RESUME = ("model", "data", "optimiser.weight_decay")
-"""Config entries a checkpoint must share with the run that resumes it: the networks (but their ``version``), the
-pairs (the data's paths as seen from the output folder, or as they were: a project folder moves whole, or only its
-run), and the weight decay (restored with the optimiser's state). An entry only one side has (a checkpoint from a
-dpcn_med before that setting) differs. The rest may change: ``steps`` (to train on), the rest of the schedule, the
-batch size, the seed, the device, the intervals."""
-
-CHECKPOINT_ENTRIES = {"step": int, "param_groups": list, "optimiser_scalars": dict, "config": dict, "rows": list}
-"""What ``checkpoint.json`` holds, and the JSON type of each."""
 
 LOSS_TERMS = ("total", "rotation_kl", "rotation_l1", "scale_kl", "scale_l1", "translation_kl", "translation_l1")
 MAX_SKIPPED_IN_A_ROW = 20
@@ -93,19 +83,17 @@ def evaluate(model: DPCN, pairs: list[tuple[Tensor, Tensor, PoseTarget]]) -> dic
 
 def pair_stream_seed(seed: int, rank: int, step: int) -> int:
     """The seed of the synthetic pairs a rank draws from ``step`` on: one stream per (seed, rank, start step), so a
-    resumed run draws new pairs, not the old ones, nor another rank's (``seed * 1_000_003 + rank * 7_919 + step``
-    gave rank 0 resumed at step 7919 the pairs of rank 1 from step 0)."""
+    resumed run draws new pairs, not the old ones, nor another rank's (history: docs/design_notes/training.md)."""
     return derived_seed(seed, rank, step)
 
 
 def _real_pairs(roots: tuple[str, ...], config: TrainConfig, *, crop: tuple[float, float] | None, seed: int
                 ) -> torch.utils.data.ConcatDataset | None:
     """The folders' real pairs as one dataset, every pair read and prepared now (kept for the run), or ``None``
-    without folders.
+    without folders (why now: docs/design_notes/training.md).
 
     Raises:
-        InputError: an unusable pair, before the output folder is made: read on first use, a broken pair surfaced
-            mid-run, after checkpoints.
+        InputError: an unusable pair, before the output folder is made.
     """
     if not roots:
         return None
@@ -144,135 +132,6 @@ def _validation_row(step: int, model: DPCN, synthetic: list, real: list | None) 
     return row
 
 
-def _checkpoint_paths(output: Path) -> tuple[Path, Path]:
-    return output / "checkpoint.safetensors", output / "checkpoint.json"
-
-
-def save_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, step: int, config: TrainConfig,
-                    rows: list[dict]) -> None:
-    """Weights and optimiser moments as safetensors, everything else as JSON (no pickle anywhere)."""
-    tensors = {f"model.{name}": tensor for name, tensor in unique_state(model).items()}
-    state = optimiser.state_dict()
-    scalars = {}
-    for index, values in state["state"].items():
-        for name, value in values.items():
-            if isinstance(value, Tensor):
-                tensors[f"optimiser.{index}.{name}"] = value
-            else:
-                scalars[f"{index}.{name}"] = value
-    weights, description = _checkpoint_paths(Path(config.output))
-    with io.interrupts_deferred():  # each file is atomic; the pair must be too (load_checkpoint checks the step)
-        io.write_tensors(tensors, weights, metadata={"step": str(step)})
-        io.write_json({"step": step, "param_groups": state["param_groups"], "optimiser_scalars": scalars,
-                       "config": config.to_json(), "rows": rows, "version": __version__}, description)
-
-
-_ABSENT = object()
-"""A config entry a checkpoint does not have."""
-
-
-def _resume_settings(config: dict) -> dict:
-    """The :data:`MUST_MATCH_ON_RESUME` entries of a config's JSON, nested as in the config."""
-    settings: dict = {}
-    for key in MUST_MATCH_ON_RESUME:
-        section, _, name = key.partition(".")
-        value = config.get(section, _ABSENT)
-        if name:
-            value = {name: value.get(name, _ABSENT) if isinstance(value, dict) else _ABSENT}
-        elif section == "model" and isinstance(value, dict):
-            value = {k: v for k, v in value.items() if k != "version"}  # which dpcn_med saved it; not a setting
-        settings[section] = value
-    return settings
-
-
-def _seen_from(settings: dict, output: Any) -> dict:
-    """``settings`` with the data's absolute paths made relative to the ``output`` folder."""
-    data = settings.get("data")
-    if not (isinstance(data, dict) and isinstance(output, str)):
-        return settings
-    relative = {key: [os.path.relpath(p, output) if isinstance(p, str) and os.path.isabs(p) else p for p in paths]
-                for key in ("volumes", "validation_volumes", "folders", "validation_folders")
-                if isinstance(paths := data.get(key), list)}
-    return {**settings, "data": {**data, **relative}}
-
-
-def _first_difference(saved: Any, current: Any, key: str = "") -> tuple[str, Any, Any] | None:
-    """``(dotted key, saved value, current value)`` of the first entry where two JSON values differ, else ``None``."""
-    if isinstance(saved, dict) and isinstance(current, dict):
-        for name in [*current, *(k for k in saved if k not in current)]:
-            found = _first_difference(saved.get(name, _ABSENT), current.get(name, _ABSENT),
-                                      f"{key}.{name}" if key else name)
-            if found is not None:
-                return found
-        return None
-    return None if saved == current else (key, saved, current)
-
-
-def _shown(value: Any) -> str:
-    return "no such entry" if value is _ABSENT else json.dumps(value)
-
-
-def load_checkpoint(model: DPCN, optimiser: torch.optim.Optimizer, config: TrainConfig) -> tuple[int, list[dict]]:
-    """Restore a checkpoint into ``model`` and ``optimiser``: ``(step, log rows)``; ``(0, [])`` without one.
-
-    Raises:
-        InputError: the checkpoint is malformed, was made with other :data:`MUST_MATCH_ON_RESUME` settings, or is past
-            ``config.optimiser.steps``; the message names the file and the way out.
-    """
-    weights, description = _checkpoint_paths(Path(config.output))
-    afresh = "train into another output folder, or start afresh over this one with --restart (resume: false)"
-    if not config.resume or not (weights.exists() or description.exists()):
-        return 0, []
-    for missing, present in ((weights, description), (description, weights)):
-        if not missing.exists():  # starting afresh would overwrite the other half at the first checkpoint
-            raise InputError(f"{missing}: missing beside {present.name} (a checkpoint is the two files); {afresh}")
-    saved = io.read_json(description)
-    wrong = [key for key, kind in CHECKPOINT_ENTRIES.items()
-             if not (isinstance(saved, dict) and isinstance(saved.get(key), kind))
-             or (key == "step" and (isinstance(saved[key], bool) or saved[key] < 0))]
-    if wrong:
-        raise InputError(f"{description}: not a dpcn_med checkpoint (no valid {', '.join(wrong)}); {afresh}")
-    settings = _resume_settings(saved["config"]), _resume_settings(json.loads(json.dumps(config.to_json())))
-    difference = _first_difference(*settings)
-    if difference is not None and _first_difference(_seen_from(settings[0], saved["config"].get("output")),
-                                                    _seen_from(settings[1], config.output)) is not None:
-        key, before, now = difference
-        raise InputError(f"{description}: was made with {key} {_shown(before)}, this config has {_shown(now)}; "
-                         f"{afresh}")
-    if saved["step"] > config.optimiser.steps:
-        raise InputError(f"{description}: is at step {saved['step']}, past this config's optimiser.steps "
-                         f"{config.optimiser.steps}; ask for more steps, or {afresh}")
-    try:
-        tensors, step = io.read_tensors(weights), io.read_tensor_header(weights)[0].get("step")
-    except InputError as error:
-        raise InputError(f"{error}; {afresh}") from None
-    if step != str(saved["step"]):
-        raise InputError(f"{weights}: holds step {step}, {description.name} step {saved['step']}: the two files are "
-                         f"from different saves (one cut short?); {afresh}")
-    model_state = {name[len("model."):]: t for name, t in tensors.items() if name.startswith("model.")}
-    shapes = {name: tensor.shape for name, tensor in unique_state(model).items()}
-    misfits = sorted(set(shapes) ^ set(model_state)) + sorted(
-        name for name in set(shapes) & set(model_state) if model_state[name].shape != shapes[name])
-    if misfits:
-        raise InputError(f"{weights}: does not fit this model ({len(misfits)} tensors missing, unexpected or of "
-                         f"another shape, such as {misfits[0]}); {afresh}")
-    model.load_state_dict({**model.state_dict(), **model_state})
-    state: dict = {"state": {}, "param_groups": saved["param_groups"]}
-    try:
-        for name, tensor in tensors.items():
-            if name.startswith("optimiser."):
-                _, index, key = name.split(".", 2)
-                state["state"].setdefault(int(index), {})[key] = tensor
-        for name, value in saved["optimiser_scalars"].items():
-            index, key = name.split(".", 1)
-            state["state"].setdefault(int(index), {})[key] = value
-        optimiser.load_state_dict(state)
-    except (KeyError, TypeError, ValueError, RuntimeError) as error:
-        raise InputError(f"{description}: its optimiser state does not fit this model ({' '.join(str(error).split())})"
-                         f"; {afresh}") from None
-    return saved["step"], saved["rows"]
-
-
 def plot(rows: list[dict], path: Path) -> None:
     """Training losses (log scale) and validation success against steps, as a PNG."""
     import matplotlib
@@ -303,7 +162,7 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
 
     Returns:
         ``(model, record)``: the trained (unwrapped) model on its device, in eval mode, and the training record
-        saved with it.
+        saved with it (empty on every rank but 0).
     """
     output = Path(config.output)
     _check_output_outside_data(output, config)
@@ -313,6 +172,49 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
     optimiser = torch.optim.AdamW(model.parameters(), lr=config.optimiser.learning_rate,
                                   weight_decay=config.optimiser.weight_decay)
     step, rows = load_checkpoint(model, optimiser, config)  # first: a checkpoint of another config is refused at once
+    run = _prepare(config, process, model, optimiser, step, rows)
+    distributed.barrier(process)
+    step, started = _steps(run, step)
+    record = _finish(run, step, started) if process.main else {}
+    distributed.stop(process)
+    return model.eval(), record
+
+
+@dataclass
+class _Run:
+    """What every step of one :func:`train` call shares.
+
+    Attributes:
+        config, process, model, optimiser: the run's.
+        network: ``model``, wrapped in DistributedDataParallel when there are several processes.
+        generator: the rank's stream of pairs (on the device).
+        bank: ``(V, 1, N, N, N)`` base volumes of the synthetic pairs.
+        real: the folders' real pairs, or ``None``.
+        validation, real_validation: batches of the synthetic and real validation pairs (rank 0; ``None`` elsewhere,
+            and ``real_validation`` without validation folders).
+        output: the run's folder.
+        rows: the log so far (rank 0's).
+    """
+
+    config: TrainConfig
+    process: distributed.Process
+    model: DPCN
+    optimiser: torch.optim.Optimizer
+    network: torch.nn.Module
+    generator: torch.Generator
+    bank: Tensor
+    real: torch.utils.data.ConcatDataset | None
+    validation: list | None
+    real_validation: list | None
+    output: Path
+    rows: list[dict]
+
+
+def _prepare(config: TrainConfig, process: distributed.Process, model: DPCN, optimiser: torch.optim.Optimizer,
+             step: int, rows: list[dict]) -> _Run:
+    """The run's data, its wrapped network and its pair stream from ``step``; rank 0 also reads the validation pairs,
+    makes the output folder and, on a fresh start, scores the untrained model."""
+    output = Path(config.output)
     size = 2 * config.model.bandwidth
     preprocessing = config.model.grid_preprocessing()  # the model records it; register uses the same
     bank = volume_bank(config.data.volumes, size, preprocessing, device=process.device)
@@ -336,7 +238,18 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
         output.mkdir(parents=True, exist_ok=True)  # only now: a bad input leaves no empty folder behind
         if step == 0:
             rows.append(_validation_row(0, model, validation, real_validation))
-    distributed.barrier(process)
+    return _Run(config, process, model, optimiser, network, generator, bank, real, validation, real_validation,
+                output, rows)
+
+
+def _steps(run: _Run, step: int) -> tuple[int, float]:
+    """Train from ``step`` to ``config.optimiser.steps``, logging, validating and checkpointing on the way:
+    ``(the last step, the perf_counter at the start)``.
+
+    Raises:
+        InputError: :data:`MAX_SKIPPED_IN_A_ROW` steps in a row with non-finite gradients.
+    """
+    config, process = run.config, run.process
     amp = config.optimiser.amp and process.device.type == "cuda"
     from tqdm import tqdm
 
@@ -346,27 +259,10 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
     skipped, skipped_in_a_row = 0, 0
     while step < config.optimiser.steps:
         rate = learning_rate(step, config)
-        for group in optimiser.param_groups:
+        for group in run.optimiser.param_groups:
             group["lr"] = rate
-        if real is not None and torch.rand((), generator=generator, device=generator.device) < \
-                config.data.folder_fraction:
-            for dataset in real.datasets:
-                dataset.set_epoch(step)  # new crops every step
-            index = torch.randint(len(real), (config.optimiser.batch_size,), generator=generator,
-                                  device=generator.device)
-            fixed, moving, target = _to(collate_pairs([real[int(i)] for i in index]), process.device)
-        else:
-            fixed, moving, target = sample_pairs(bank, config.optimiser.batch_size, generator, config.data.pair)
-        result = network(fixed, moving, target, generator=generator, amp=amp)
-        terms = pose_loss(result, target)
-        optimiser.zero_grad(set_to_none=True)
-        terms["total"].backward()
-        # One non-finite gradient (a degenerate pair: an empty crop, a constant volume) would make every weight NaN
-        # at the step; such a step is skipped, and counted (its gradients are all-reduced: every process agrees).
-        norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.optimiser.gradient_clip
-                                              if config.optimiser.gradient_clip > 0 else math.inf)
-        if torch.isfinite(norm):
-            optimiser.step()
+        terms, finite = _descend(run, *_batch(run, step), amp)
+        if finite:
             skipped_in_a_row = 0
         else:
             skipped += 1
@@ -379,41 +275,87 @@ def train(config: TrainConfig) -> tuple[DPCN, dict]:
         pairs_since += config.optimiser.batch_size * process.world_size
         bar.update(1)
         if step % config.log_every == 0 or step == config.optimiser.steps:
-            values = torch.stack([terms[t].detach().float() for t in LOSS_TERMS])
-            if process.distributed:
-                dist.all_reduce(values)
-                values /= process.world_size
             now = time.perf_counter()
-            row = {"step": step, "kind": "train", "learning_rate": rate,
-                   **{t: v.item() for t, v in zip(LOSS_TERMS, values)}, "skipped_steps": skipped,
-                   "pairs_per_second": pairs_since / (now - clock)}
+            row = _train_row(run, step, rate, terms, skipped, pairs_since / (now - clock))
             pairs_since, clock, skipped = 0, now, 0
             if process.main:
-                rows.append(row)
+                run.rows.append(row)
                 bar.set_postfix(loss=f"{row['total']:.3g}")
-        if process.main and (step % config.validate_every == 0 or step == config.optimiser.steps):
-            rows.append(_validation_row(step, model, validation, real_validation))
-            bar.write(f"step {step}: validation success {100 * rows[-1]['success']:.1f}%")
-        if step % config.checkpoint_every == 0 or step == config.optimiser.steps:
-            if process.main:
-                save_checkpoint(model, optimiser, step, config, rows)
-                io.write_csv(rows, output / "log.csv", COLUMNS)
-                plot(rows, output / "training.png")
-            distributed.barrier(process)
+        _validate_and_save(run, step, bar)
     bar.close()
-    record = {}
-    if process.main:
-        validations = [r for r in rows if r["kind"] == "validation"]
-        record = {"steps": step, "pairs_seen": step * config.optimiser.batch_size * process.world_size,
-                  "wall_seconds_this_run": time.perf_counter() - started, "processes": process.world_size,
-                  "device": torch.cuda.get_device_name(process.device) if process.device.type == "cuda" else "cpu",
-                  "training_volumes": list(config.data.volumes),
-                  "validation_volumes": list(config.data.validation_volumes),
-                  "validation_before": validations[0] if validations else None,
-                  "validation_after": validations[-1] if validations else None,
-                  "config": replace(config, output=str(output)).to_json()}
-        save_model(model, output / "model", record=record)
-        io.write_csv(rows, output / "log.csv", COLUMNS)
-        plot(rows, output / "training.png")
-    distributed.stop(process)
-    return model.eval(), record
+    return step, started
+
+
+def _batch(run: _Run, step: int) -> tuple[Tensor, Tensor, PoseTarget]:
+    """The step's batch on the device: real pairs (new crops every step) with probability
+    ``data.folder_fraction`` when there are folders, else synthetic pairs."""
+    config, generator = run.config, run.generator
+    if run.real is not None and torch.rand((), generator=generator, device=generator.device) < \
+            config.data.folder_fraction:
+        for dataset in run.real.datasets:
+            dataset.set_epoch(step)  # new crops every step
+        index = torch.randint(len(run.real), (config.optimiser.batch_size,), generator=generator,
+                              device=generator.device)
+        return _to(collate_pairs([run.real[int(i)] for i in index]), run.process.device)
+    return sample_pairs(run.bank, config.optimiser.batch_size, generator, config.data.pair)
+
+
+def _descend(run: _Run, fixed: Tensor, moving: Tensor, target: PoseTarget, amp: bool
+             ) -> tuple[dict[str, Tensor], bool]:
+    """One optimiser step on a batch: ``(loss terms, whether the gradients were finite and the step was taken)``."""
+    result = run.network(fixed, moving, target, generator=run.generator, amp=amp)
+    terms = pose_loss(result, target)
+    run.optimiser.zero_grad(set_to_none=True)
+    terms["total"].backward()
+    # One non-finite gradient (a degenerate pair: an empty crop, a constant volume) would make every weight NaN
+    # at the step; such a step is skipped, and counted (its gradients are all-reduced: every process agrees).
+    gradient_clip = run.config.optimiser.gradient_clip
+    norm = torch.nn.utils.clip_grad_norm_(run.model.parameters(), gradient_clip if gradient_clip > 0 else math.inf)
+    if torch.isfinite(norm):
+        run.optimiser.step()
+        return terms, True
+    return terms, False
+
+
+def _train_row(run: _Run, step: int, rate: float, terms: dict[str, Tensor], skipped: int, pairs_per_second: float
+               ) -> dict:
+    """The log row of a step: its loss terms averaged over the processes (every rank takes part)."""
+    values = torch.stack([terms[t].detach().float() for t in LOSS_TERMS])
+    if run.process.distributed:
+        dist.all_reduce(values)
+        values /= run.process.world_size
+    return {"step": step, "kind": "train", "learning_rate": rate,
+            **{t: v.item() for t, v in zip(LOSS_TERMS, values)}, "skipped_steps": skipped,
+            "pairs_per_second": pairs_per_second}
+
+
+def _validate_and_save(run: _Run, step: int, bar: Any) -> None:
+    """Validate (rank 0) and checkpoint at their intervals and at the last step."""
+    config, process = run.config, run.process
+    if process.main and (step % config.validate_every == 0 or step == config.optimiser.steps):
+        run.rows.append(_validation_row(step, run.model, run.validation, run.real_validation))
+        bar.write(f"step {step}: validation success {100 * run.rows[-1]['success']:.1f}%")
+    if step % config.checkpoint_every == 0 or step == config.optimiser.steps:
+        if process.main:
+            save_checkpoint(run.model, run.optimiser, step, config, run.rows)
+            io.write_csv(run.rows, run.output / "log.csv", COLUMNS)
+            plot(run.rows, run.output / "training.png")
+        distributed.barrier(process)
+
+
+def _finish(run: _Run, step: int, started: float) -> dict:
+    """Rank 0's end of a run: the final model with its training record, the log and the plot; the record."""
+    config, process, rows = run.config, run.process, run.rows
+    validations = [r for r in rows if r["kind"] == "validation"]
+    record = {"steps": step, "pairs_seen": step * config.optimiser.batch_size * process.world_size,
+              "wall_seconds_this_run": time.perf_counter() - started, "processes": process.world_size,
+              "device": torch.cuda.get_device_name(process.device) if process.device.type == "cuda" else "cpu",
+              "training_volumes": list(config.data.volumes),
+              "validation_volumes": list(config.data.validation_volumes),
+              "validation_before": validations[0] if validations else None,
+              "validation_after": validations[-1] if validations else None,
+              "config": replace(config, output=str(run.output)).to_json()}
+    save_model(run.model, run.output / "model", record=record)
+    io.write_csv(rows, run.output / "log.csv", COLUMNS)
+    plot(rows, run.output / "training.png")
+    return record
