@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from dpcn_med.models import load_model
-from dpcn_med.registration import LEARNING_FREE
+from dpcn_med.options import LEARNING_FREE
 from dpcn_med.solver import solve
 from dpcn_med.train import load_config
 from dpcn_med.train.data import validation_set, volume_bank

@@ -170,7 +170,7 @@ def plan_batch(pairs_file: Path, output: Path, *, settings: RegistrationSettings
     Raises:
         InputError: a bad pairs file, output folder or option, or an output that would replace an input.
     """
-    from dpcn_med.registration import check_options
+    from dpcn_med.options import check_options
 
     pairs = read_pairs(pairs_file)
     summary = output / "summary.csv"

@@ -141,7 +141,7 @@ def model_identity(model: str) -> str | dict[str, str]:
     Files that cannot be read keep their path alone (the registration then says what is wrong).
     """
     from dpcn_med.models.weights import model_paths
-    from dpcn_med.registration import LEARNING_FREE
+    from dpcn_med.options import LEARNING_FREE
 
     if model.lower() in LEARNING_FREE:
         return "none"

@@ -20,8 +20,7 @@ import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -29,19 +28,15 @@ import SimpleITK as sitk
 import torch
 
 from dpcn_med import io
-from dpcn_med.arguments import check_flag, check_integer, shown
-from dpcn_med.devices import resolve_device
+from dpcn_med.arguments import check_flag, shown
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import (
     CanonicalGrid,
     homogeneous_matrix,
     physical_transform,
-    rotation_angle,
-    scale_and_rotation,
     similarity_transform,
 )
 from dpcn_med.preprocess import (
-    MODALITIES,
     PreparedImage,
     Preprocessing,
     pair_grids,
@@ -49,6 +44,7 @@ from dpcn_med.preprocess import (
     resample_to_grid,
     to_tensor,
 )
+from dpcn_med.options import LEARNING_FREE, check_options, load_feature_model  # noqa: F401  (public here too)
 from dpcn_med.refine import (
     MIN_LEVEL_VOXELS,
     Choice,
@@ -57,10 +53,9 @@ from dpcn_med.refine import (
     choose_and_refine,
     metric_masks,
 )
+from dpcn_med.result import RegistrationResult, describe_transform  # noqa: F401  (public here too)
 from dpcn_med.solver import SolverConfig, StageTemperatures, solve
-from dpcn_med.solver.config import DEFAULT_BANDWIDTH
 from dpcn_med.solver.translation import phase_translation
-from dpcn_med.solver.validation import check_grid_bandwidth, check_mode
 
 if TYPE_CHECKING:
     from dpcn_med.models import DPCN
@@ -68,123 +63,6 @@ if TYPE_CHECKING:
 ImageLike = str | os.PathLike | sitk.Image
 Progress = Callable[[str, float], None]
 """``progress(stage, fraction)``: the stage's name and the fraction of the whole job done, in ``[0, 1]``."""
-
-
-@dataclass
-class RegistrationResult:
-    """What :func:`register` found.
-
-    Attributes:
-        fixed_to_moving: the final transform (refined unless refinement was off or did not improve the metric), LPS
-            mm, fixed points to moving points: ``sitk.Resample(moving, fixed, fixed_to_moving)`` aligns them. A
-            ``VersorRigid3DTransform`` (rigid) or ``Similarity3DTransform`` (similarity), centred at the fixed grid's
-            centre.
-        moving_to_fixed: its inverse.
-        dpc_transform: the start that the refinement kept (before refinement): a global estimate, or the identity
-            when ``start`` is ``"stored pose"``.
-        confidence: the solver's confidence in that start, in ``[0, 1]``: the mass of its translation peak (for the
-            stored pose, of the translation correlation at the stored orientation, :func:`stored_pose_confidence`).
-        candidate: which start that is, chosen by :func:`dpcn_med.refine.refine_candidates`: 0 for the solver's own
-            choice, ``k`` for its ``k``-th runner-up; the stored pose is the last (``len(candidate_metrics) - 1``).
-        start: ``"phase correlation"`` (one of the solver's candidates) or ``"stored pose"``
-            (:attr:`dpcn_med.refine.Refinement.stored_start`).
-        candidate_metrics: each start's metric after the coarsest refinement level, on that level's images (empty
-            without refinement), in the order of ``candidate``.
-        mode: ``"rigid"`` or ``"similarity"``.
-        bandwidth: ``B``; the canonical grids are ``(2B)^3``.
-        fixed_grid: canonical cube of the fixed volume.
-        moving_grid: canonical cube of the moving volume (same spacing).
-        modalities: ``(fixed, moving)`` modality used for intensity normalisation.
-        metric: Mattes mutual information (SimpleITK's sign: lower is better) at ``"stored"`` (identity),
-            ``"dpc"`` and ``"refined"`` (``None`` without refinement, or where the pose leaves no overlap).
-        refined: whether ``fixed_to_moving`` is the refined transform.
-        overlap: share of the fixed foreground that ``fixed_to_moving`` maps inside the moving image's field of view
-            (:func:`field_of_view_overlap`).
-        timings: wall-clock seconds per step (``read``, ``preprocess``, ``solve``, ``refine``, ``resample``) and
-            per solver stage (``solver.*``).
-        device: the torch device the solver ran on.
-        model: ``"learning-free"`` or the path of the learned model used.
-        fixed_image: the fixed input as read.
-        moving_image: the moving input as read.
-        resampled: the moving image on the fixed grid, when asked for.
-    """
-
-    fixed_to_moving: sitk.Transform
-    moving_to_fixed: sitk.Transform
-    dpc_transform: sitk.Transform
-    confidence: float
-    mode: str
-    bandwidth: int
-    fixed_grid: CanonicalGrid
-    moving_grid: CanonicalGrid
-    modalities: tuple[str, str]
-    metric: dict[str, float | None]
-    refined: bool
-    candidate: int = 0
-    start: str = "phase correlation"
-    candidate_metrics: list[float | None] = field(default_factory=list)
-    overlap: float = 1.0
-    timings: dict[str, float] = field(default_factory=dict)
-    device: str = "cpu"
-    model: str = "learning-free"
-    fixed_image: sitk.Image | None = None
-    moving_image: sitk.Image | None = None
-    resampled: sitk.Image | None = None
-
-    def to_dict(self) -> dict:
-        """JSON-ready summary: both estimates as 4x4 matrices and parameters, confidence, metric, timings."""
-        return {
-            "mode": self.mode, "bandwidth": self.bandwidth, "device": self.device, "model": self.model,
-            "confidence": self.confidence, "modalities": {"fixed": self.modalities[0], "moving": self.modalities[1]},
-            "canonical_grid": {"size": self.fixed_grid.size, "spacing_mm": self.fixed_grid.spacing,
-                               "fixed_centre_lps": list(self.fixed_grid.centre),
-                               "moving_centre_lps": list(self.moving_grid.centre)},
-            "dpc": describe_transform(self.dpc_transform),
-            "final": describe_transform(self.fixed_to_moving),
-            "refined": self.refined, "candidate": self.candidate, "start": self.start,
-            "candidate_mattes_mutual_information": self.candidate_metrics, "overlap_fraction": self.overlap,
-            "mattes_mutual_information": self.metric,
-            "timings_s": self.timings,
-        }
-
-
-def check_options(*, mode: str, model: str | os.PathLike | None, bandwidth: int | None, device: str | torch.device,
-                  fixed_modality: str, moving_modality: str
-                  ) -> tuple[str, int, torch.device, DPCN | None]:
-    """:func:`register`'s options checked before any work (a batch checks them once, not at every pair).
-
-    Returns:
-        ``(mode, bandwidth, device, network)``: the bandwidth and device resolved (``None``: the model's, else
-        :data:`DEFAULT_BANDWIDTH`), the model loaded (``None``: learning-free).
-
-    Raises:
-        InputError: an unknown mode, modality or device, a bandwidth out of range (the grids will be ``(2B)^3``), or
-            a model that cannot be used at this bandwidth.
-    """
-    mode = check_mode(mode)
-    if bandwidth is not None:
-        bandwidth = check_grid_bandwidth(check_integer("bandwidth", bandwidth))
-    for name, value in (("fixed_modality", fixed_modality), ("moving_modality", moving_modality)):
-        if value not in MODALITIES:
-            raise InputError(f"{name} {value!r} is not supported; use one of {', '.join(MODALITIES)}")
-    torch_device = resolve_device(device)
-    network = load_feature_model(model, bandwidth, torch_device)
-    if bandwidth is None:
-        bandwidth = DEFAULT_BANDWIDTH if network is None else network.config.bandwidth
-    return mode, bandwidth, torch_device, network
-
-
-def describe_transform(fixed_to_moving: sitk.Transform) -> dict:
-    """A transform as JSON: ITK name, parameters, centre, the 4x4 LPS matrix, its rotation angle, scale and
-    ``translation_mm``, the matrix's offset (where the LPS origin goes; ITK's translation parameters are about the
-    centre)."""
-    matrix = homogeneous_matrix(fixed_to_moving)
-    scale, rotation = scale_and_rotation(matrix[:3, :3])
-    angle = float(np.degrees(rotation_angle(torch.from_numpy(rotation)).item()))
-    return {"type": fixed_to_moving.GetName(), "parameters": list(fixed_to_moving.GetParameters()),
-            "fixed_parameters": list(fixed_to_moving.GetFixedParameters()),
-            "fixed_to_moving_lps": matrix.tolist(), "rotation_degrees": angle, "scale": scale,
-            "translation_mm": matrix[:3, 3].tolist()}
 
 
 def _check_image_like(name: str, value: object) -> None:
@@ -235,52 +113,6 @@ def _mask_name(source: ImageLike | None, role: str) -> str:
     if source is None or isinstance(source, sitk.Image):
         return f"{role.replace(' ', '_')} argument"
     return os.fspath(source)
-
-
-LEARNING_FREE = ("none", "learning-free")
-"""Names of the learning-free solver for ``model`` (as is ``None``)."""
-
-
-def load_feature_model(model: str | os.PathLike | None, bandwidth: int | None, device: torch.device):
-    """The learned model named by ``model`` (a path to ``NAME.safetensors`` / ``NAME.json`` / ``NAME``) on
-    ``device``, or ``None`` for the learning-free solver.
-
-    Raises:
-        InputNotFoundError: the model's files are missing.
-        InputError: not a path (or ``None``), an empty one, not a dpcn_med model, or trained at another bandwidth
-            than ``bandwidth`` (any when ``None``).
-    """
-    if model is None:
-        return None
-    if not isinstance(model, (str, os.PathLike)) or Path(model).name in ("", ".."):
-        raise InputError(f"model is {shown(model)}; expected the path of a model (NAME.safetensors, NAME.json or "
-                         f"NAME), or None or 'none' for the learning-free solver")
-    if os.fspath(model).lower() in LEARNING_FREE:
-        return None
-    network = _loaded_model(model, device)
-    if bandwidth is not None and network.config.bandwidth != bandwidth:
-        raise InputError(f"{model}: this model was trained at bandwidth {network.config.bandwidth}; register with "
-                         f"bandwidth={network.config.bandwidth} (--bandwidth {network.config.bandwidth})")
-    return network
-
-
-_LOADED: dict[tuple, DPCN] = {}
-"""The model last loaded, by its files' SHA-256 and its device: the registrations of a batch (or of a Dask worker)
-load it once. A model is only ever evaluated here, so one instance serves every registration."""
-
-
-def _loaded_model(model: str | os.PathLike, device: torch.device) -> DPCN:
-    from dpcn_med.models import load_model
-    from dpcn_med.models.weights import model_paths
-
-    try:
-        key = (*(io.file_sha256(path) for path in model_paths(model)), str(device))
-    except (OSError, InputError):  # missing or unreadable files: load_model says what is wrong
-        return load_model(model, device=device)
-    if key not in _LOADED:
-        _LOADED.clear()  # one model at a time: a cohort uses one
-        _LOADED[key] = load_model(model, device=device)
-    return _LOADED[key]
 
 
 def register(fixed: ImageLike, moving: ImageLike, *, mode: str = "rigid", model: str | os.PathLike | None = None,

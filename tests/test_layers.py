@@ -29,6 +29,8 @@ LAYERS: dict[str, int] = {
     "dpcn_med.models": 4,
     "dpcn_med.synth": 4,
     "dpcn_med.refine": 4,
+    "dpcn_med.options": 4,
+    "dpcn_med.result": 4,
     "dpcn_med.samples": 4,
     "dpcn_med.render": 4,
     # 3: from an image to a solver grid, and the measures of a pose.
