@@ -144,11 +144,11 @@ def register_on_worker(job: PairJob, settings, model: str | dict[str, str]) -> d
     from dpcn_med.batch import error_row, register_job
     from dpcn_med.outputs import model_identity
 
-    _set_up_worker()
     here = model_identity(settings.model)
     if here != model:
         return error_row(job.id, "bad input", f"{settings.model}: the model on worker {socket.gethostname()} "
                          f"({here}) is not the client's ({model}); give every worker the same model files")
+    _set_up_worker()
     row, error = register_job(job, settings, model=model)
     if error is not None:
         raise error

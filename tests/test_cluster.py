@@ -141,7 +141,9 @@ class TestWorkerChecks:
         settings = RegistrationSettings(model=str(tmp_path / "model"), bandwidth=8, resampled=False, overview=False)
         job = plan_batch(cohort[0], tmp_path / "out", settings=settings).jobs[0]
         client_model = {**model_identity(settings.model), "weights_sha256": "0" * 64}
+        threads = torch.get_num_threads(), sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
         row = register_on_worker(job, settings, client_model)
+        assert (torch.get_num_threads(), sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()) == threads
         assert row["status"] == "bad input" and "is not the client's" in row["message"]
         assert "give every worker the same model files" in row["message"]
         assert not (tmp_path / "out").exists()
