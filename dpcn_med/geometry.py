@@ -11,7 +11,7 @@ Conventions (everything else imports them from here):
   ``R = Rz(alpha) @ Ry(beta) @ Rz(gamma)``, ``alpha, gamma`` in ``[0, 2 pi)``, ``beta`` in ``[0, pi]``.
 * **Resampling direction.** :func:`warp` pulls: ``out(p) = volume(matrix @ p + translation)``. The solver's contract
   ``fixed(p) ~ moving(scale * rotation @ p + translation)`` therefore reads ``fixed ~ warp(moving, scale * rotation,
-  translation)``: the matrix maps fixed voxels to moving voxels (``moving_from_fixed``), ITK's direction.
+  translation)``: the matrix maps fixed voxels to moving voxels (``fixed_to_moving``), ITK's direction.
 * **Physical space.** ITK's LPS, in millimetres. A registration result is a SimpleITK transform ``fixed_to_moving``
   mapping fixed physical points to moving ones, so ``sitk.Resample(moving, fixed, fixed_to_moving)`` puts the
   moving image on the fixed grid. A solver pose ``v = mu R u + tau`` on two canonical grids (voxel offsets ``u``,
@@ -36,8 +36,11 @@ from torch import Tensor
 from dpcn_med.arguments import check_integer, check_real, check_sequence
 from dpcn_med.errors import InputError
 
-LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
-"""Homogeneous ``(4, 4)`` change of frame between RAS and LPS (its own inverse)."""
+RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
+"""Homogeneous ``(4, 4)`` change of frame from RAS to LPS."""
+
+LPS_TO_RAS = RAS_TO_LPS
+"""Homogeneous ``(4, 4)`` change of frame from LPS to RAS: the same flip, its own inverse."""
 
 SIMILARITY_TOLERANCE = 1e-4
 """Relative spread of singular values (and, for a rigid transform, deviation of the scale from 1) still taken for a
@@ -289,7 +292,7 @@ def warp(volume: Tensor, matrix: Tensor, translation: Tensor | None = None) -> T
 
     Args:
         volume: ``(B, C, D, H, W)`` (or ``(B, C, H, W)`` for 2-D).
-        matrix: ``(B, *K, d, d)`` ``moving_from_fixed`` linear part, acting on ``(x, y[, z])``; ``K`` optional
+        matrix: ``(B, *K, d, d)`` ``fixed_to_moving`` linear part, acting on ``(x, y[, z])``; ``K`` optional
             extra axes (one resampled volume per entry, e.g. per candidate). Moved to ``volume``'s device and dtype,
             as is ``translation``.
         translation: ``(B, *K, d)`` voxels, or ``None`` for zero.
@@ -319,7 +322,7 @@ def physical_transform(rotation: Tensor, scale: float | None, translation: Tenso
     """The physical ``fixed_to_moving`` transform of a solver pose on two canonical grids.
 
     Args:
-        rotation: ``(3, 3)`` ``moving_from_fixed`` rotation on the grids (identity direction, so also in LPS).
+        rotation: ``(3, 3)`` ``fixed_to_moving`` rotation on the grids (identity direction, so also in LPS).
         scale: isotropic scale ``mu`` (a ``Similarity3DTransform``), or ``None`` for a rigid pose (a
             ``VersorRigid3DTransform``).
         translation: ``(3,)`` voxels ``(x, y, z)``, the solver's ``tau``.
@@ -452,4 +455,4 @@ def slicer_to_parent_ras(fixed_to_moving: sitk.Transform) -> np.ndarray:
     Slicer models the moving volume's motion (to parent, RAS); ITK stores the resampling direction (fixed to moving,
     LPS): ``inv(F T F)``, ``F = diag(-1, -1, 1, 1)``. This is what Slicer builds when it reads the transform file.
     """
-    return np.linalg.inv(LPS_FROM_RAS @ homogeneous_matrix(fixed_to_moving) @ LPS_FROM_RAS)
+    return np.linalg.inv(LPS_TO_RAS @ homogeneous_matrix(fixed_to_moving) @ RAS_TO_LPS)

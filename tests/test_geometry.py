@@ -11,7 +11,7 @@ import torch
 
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import (
-    LPS_FROM_RAS,
+    LPS_TO_RAS,
     CanonicalGrid,
     affine_points,
     axis_angle_to_matrix,
@@ -397,8 +397,8 @@ class TestSlicerToParentRas:
         # A moving point p (LPS) that the fixed point x maps onto is carried back onto x by the node's motion.
         x = np.array([12.0, -4.0, 33.0])
         p = np.asarray(transform.TransformPoint(x.tolist()))
-        p_ras = LPS_FROM_RAS[:3, :3] @ p
-        np.testing.assert_allclose(to_parent[:3, :3] @ p_ras + to_parent[:3, 3], LPS_FROM_RAS[:3, :3] @ x, atol=1e-9)
+        p_ras = LPS_TO_RAS[:3, :3] @ p
+        np.testing.assert_allclose(to_parent[:3, :3] @ p_ras + to_parent[:3, 3], LPS_TO_RAS[:3, :3] @ x, atol=1e-9)
 
     @pytest.mark.parametrize("suffix", [".tfm", ".h5"])
     def test_equals_what_slicer_reads_from_the_file(self, tmp_path, suffix):

@@ -44,7 +44,8 @@ from DPCNRegistrationLib.transforms import (  # noqa: E402
     reusable_output,
 )
 from DPCNRegistrationLib.volumes import (  # noqa: E402
-    RAS_FROM_LPS,
+    LPS_TO_RAS,
+    RAS_TO_LPS,
     array_to_matrix,
     ijk_to_ras,
     image_to_volume,
@@ -158,7 +159,7 @@ class TestVolumes:
         image_to_volume(image, node)
         index = (3, 5, 6)
         ras = ijk_to_ras(node) @ np.array([*index, 1.0])
-        np.testing.assert_allclose(RAS_FROM_LPS[:3, :3] @ image.TransformIndexToPhysicalPoint(index), ras[:3],
+        np.testing.assert_allclose(LPS_TO_RAS[:3, :3] @ image.TransformIndexToPhysicalPoint(index), ras[:3],
                                    atol=1e-9)
 
     def test_world_geometry_hardens_linear_parents(self):
@@ -176,8 +177,8 @@ class TestVolumes:
         np.testing.assert_allclose(world, transform_to_world(outer) @ inner_matrix, atol=1e-12)
         hardened = volume_to_image(node, world=world)
         index = (1, 7, 2)
-        expected = world @ RAS_FROM_LPS @ np.array([*image.TransformIndexToPhysicalPoint(index), 1.0])
-        np.testing.assert_allclose(RAS_FROM_LPS[:3, :3] @ hardened.TransformIndexToPhysicalPoint(index),
+        expected = world @ LPS_TO_RAS @ np.array([*image.TransformIndexToPhysicalPoint(index), 1.0])
+        np.testing.assert_allclose(LPS_TO_RAS[:3, :3] @ hardened.TransformIndexToPhysicalPoint(index),
                                    expected[:3], atol=1e-9)
 
     def test_refuses_empty_vector_and_sheared_volumes(self):
@@ -454,8 +455,8 @@ def landing_errors(moving, truth, points: np.ndarray) -> np.ndarray:
     """``(K,)`` mm: fixed anatomy ``x`` (LPS) sits at ``truth(x)`` in the moved file; under the moving volume's
     transforms it must come back to ``x``."""
     moved_points = np.array([truth.TransformPoint(p.tolist()) for p in points])
-    world = parent_to_world(moving) @ RAS_FROM_LPS @ homogeneous(moved_points)
-    return np.linalg.norm((RAS_FROM_LPS @ world).T[:, :3] - points, axis=1)
+    world = parent_to_world(moving) @ LPS_TO_RAS @ homogeneous(moved_points)
+    return np.linalg.norm((RAS_TO_LPS @ world).T[:, :3] - points, axis=1)
 
 
 @pytest.mark.shared_data

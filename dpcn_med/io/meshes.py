@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dpcn_med.errors import InputError, InputNotFoundError
-from dpcn_med.geometry import LPS_FROM_RAS
+from dpcn_med.geometry import RAS_TO_LPS
 
 if TYPE_CHECKING:
     import pyvista
@@ -67,7 +67,7 @@ def read_mesh(path: str | os.PathLike) -> pyvista.PolyData:
     if not np.isfinite(mesh.points).all():  # a NaN point became index -2**63 when voxelised
         raise InputError(f"{name}: has points with NaN or infinite coordinates; export it again")
     if space == "RAS":
-        mesh = mesh.transform(LPS_FROM_RAS, inplace=False)  # a copy; active normals follow
+        mesh = mesh.transform(RAS_TO_LPS, inplace=False)  # a copy; active normals follow
         if "SPACE" in mesh.field_data:
             mesh.field_data["SPACE"] = ["LPS"]
     return mesh

@@ -21,7 +21,7 @@ class Solve2dResult:
     """Pose found by :func:`solve2d`: ``fixed(p) ~ moving(scale * rotation @ p + translation)``.
 
     Attributes:
-        rotation: ``(batch, 2, 2)`` ``moving_from_fixed`` rotation acting on pixel ``(x, y)`` from the grid centre.
+        rotation: ``(batch, 2, 2)`` ``fixed_to_moving`` rotation acting on pixel ``(x, y)`` from the grid centre.
         angle: ``(batch,)`` its angle in radians, ``[-pi, pi)``, counter-clockwise.
         scale: ``(batch,)`` (ones in rigid mode).
         translation: ``(batch, 2)`` pixels, order ``(x, y)``.

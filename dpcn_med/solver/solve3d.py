@@ -57,7 +57,7 @@ class SolveResult:
     """Pose found by :func:`solve`: ``fixed(p) ~ moving(scale * rotation @ p + translation)``.
 
     Attributes:
-        rotation: ``(batch, 3, 3)`` ``moving_from_fixed`` rotation acting on voxel ``(x, y, z)`` from the grid centre.
+        rotation: ``(batch, 3, 3)`` ``fixed_to_moving`` rotation acting on voxel ``(x, y, z)`` from the grid centre.
         scale: ``(batch,)`` isotropic scale (ones in rigid mode).
         translation: ``(batch, 3)`` voxels, order ``(x, y, z)``.
         confidence: ``(batch,)`` in ``[0, 1]``: softmax mass of the translation peak of the chosen candidate.

@@ -17,7 +17,7 @@ class Pose:
     """A similarity transform in voxel units: ``fixed(p) = moving(scale * rotation @ p + translation)``.
 
     Attributes:
-        rotation: ``(d, d)`` ``moving_from_fixed`` rotation, ``d`` 2 or 3.
+        rotation: ``(d, d)`` ``fixed_to_moving`` rotation, ``d`` 2 or 3.
         scale: isotropic scale.
         translation: ``(d,)`` voxels ``(x, y[, z])``.
     """

@@ -14,7 +14,8 @@ import SimpleITK as sitk
 import vtk
 from vtk.util import numpy_support
 
-RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
+LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
+RAS_TO_LPS = LPS_TO_RAS  # the same flip, its own inverse
 """Homogeneous change of frame between LPS and RAS (its own inverse). dpcn_med.geometry holds the same matrix; this
 package keeps its own copy because it must import before dpcn_med is installed into Slicer."""
 
@@ -131,7 +132,7 @@ def _lps_geometry(node, world: np.ndarray | None) -> tuple[list[float], list[flo
     Raises:
         ValueError: a zero spacing, or a geometry that is not a rotation times spacing.
     """
-    lps = RAS_FROM_LPS @ ijk_to_ras(node, world=world)
+    lps = RAS_TO_LPS @ ijk_to_ras(node, world=world)
     columns = lps[:3, :3]
     spacing = np.linalg.norm(columns, axis=0)
     if np.any(spacing <= 0):
@@ -160,7 +161,7 @@ def image_to_volume(image: sitk.Image, node) -> None:
     data.SetDimensions(image.GetSize())
     data.GetPointData().SetScalars(numpy_support.numpy_to_vtk(array.ravel(), deep=True))
     node.SetAndObserveImageData(data)
-    node.SetIJKToRASMatrix(array_to_matrix(RAS_FROM_LPS @ lps))
+    node.SetIJKToRASMatrix(array_to_matrix(LPS_TO_RAS @ lps))
 
 
 def read_volume(scene, path, name: str):
