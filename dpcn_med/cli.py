@@ -20,6 +20,7 @@ from pathlib import Path
 from dpcn_med import __version__
 from dpcn_med.errors import InputError
 from dpcn_med.outputs import MIN_CONFIDENCE, OUTPUT_NAMES, RegistrationSettings, check_output_folder
+from dpcn_med.preprocess import MODALITIES
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_LOW_CONFIDENCE = 0, 1, 2, 3
 
@@ -52,8 +53,8 @@ def _registration_options() -> argparse.ArgumentParser:
     options.add_argument("--no-refine", dest="refine", action="store_false",
                          help="skip the local mutual-information refinement")
     options.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:N")
-    options.add_argument("--fixed-modality", default="auto", choices=("auto", "ct", "mr", "us"))
-    options.add_argument("--moving-modality", default="auto", choices=("auto", "ct", "mr", "us"))
+    options.add_argument("--fixed-modality", default="auto", choices=MODALITIES)
+    options.add_argument("--moving-modality", default="auto", choices=MODALITIES)
     options.add_argument("--min-confidence", type=_finite_float, default=MIN_CONFIDENCE,
                          help=f"exit with code 3 below this solver confidence (default {MIN_CONFIDENCE})")
     options.add_argument("--no-overview", dest="overview", action="store_false",

@@ -49,7 +49,15 @@ from dpcn_med import io
 from dpcn_med.arguments import check_pair
 from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.geometry import CanonicalGrid, homogeneous_matrix, scale_and_rotation, similarity_transform
-from dpcn_med.preprocess import PreparedImage, Preprocessing, pair_grids, prepare, resample_to_grid, to_tensor
+from dpcn_med.preprocess import (
+    MODALITIES,
+    PreparedImage,
+    Preprocessing,
+    pair_grids,
+    prepare,
+    resample_to_grid,
+    to_tensor,
+)
 from dpcn_med.solver import PoseTarget
 from dpcn_med.solver.validation import check_grid_bandwidth
 from dpcn_med.synth import slab_mask
@@ -341,7 +349,7 @@ def _prepared(path: Path, image: sitk.Image, preprocessing: Preprocessing) -> Pr
     """``image`` prepared as by :func:`dpcn_med.register`, the modality taken from its name when it says one."""
     role = _role(path)
     try:
-        return prepare(image, modality=role if role in ("ct", "mr", "us") else "auto", config=preprocessing)
+        return prepare(image, modality=role if role in MODALITIES else "auto", config=preprocessing)
     except InputError as error:
         raise InputError(f"{path}: {error}") from None
 
