@@ -93,8 +93,8 @@ def run_on_dask(batch: Batch, record: Callable[[PairJob, dict, Exception | None]
         return
     run = uuid.uuid4().hex[:8]
     with dask_client(workers=workers, scheduler=scheduler) as client:
-        futures = {client.submit(register_on_worker, job, batch.settings, batch.model, key=f"dpcn-med-{run}-{job.index}",
-                                 retries=ATTEMPTS - 1, pure=False): job for job in pending}
+        futures = {client.submit(register_on_worker, job, batch.settings, batch.model, retries=ATTEMPTS - 1,
+                                 key=f"dpcn-med-{run}-{job.index}", pure=False): job for job in pending}
         slots = sum(client.nthreads().values()) or 1
         started, done, failed = time.monotonic(), 0, 0
         try:
