@@ -111,16 +111,11 @@ def run_on_dask(batch: Batch, record: Callable[[PairJob, dict, Exception | None]
 
 
 def _row_of(future, job: PairJob) -> tuple[dict, Exception | None]:
-    from distributed import KilledWorker
-
     from dpcn_med.batch import error_row
 
     try:
         return future.result(), None
-    except KilledWorker as error:
-        return error_row(job.id, "internal error", f"the worker registering it died {ATTEMPTS} times "
-                         f"(KilledWorker: {error})"), error
-    except Exception as error:  # raised on the worker ATTEMPTS times
+    except Exception as error:  # it raised ATTEMPTS times, or KilledWorker: the workers running it died
         return error_row(job.id, "internal error", f"{type(error).__name__}: {error}"), error
 
 

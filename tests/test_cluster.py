@@ -7,6 +7,7 @@ import os
 import signal
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -147,6 +148,33 @@ class TestWorkerChecks:
         assert row["status"] == "bad input" and "is not the client's" in row["message"]
         assert "give every worker the same model files" in row["message"]
         assert not (tmp_path / "out").exists()
+
+
+class TestFailedPairs:
+    class _Failed:
+        """A future whose task failed on the cluster with ``error``."""
+
+        def __init__(self, error: Exception) -> None:
+            self.error = error
+
+        def result(self):
+            raise self.error
+
+    def test_a_pair_whose_worker_died_twice_is_an_internal_error(self, cohort, tmp_path):
+        from dpcn_med.cluster import ATTEMPTS, _row_of
+
+        job = plan_batch(cohort[0], tmp_path / "out", settings=SETTINGS).jobs[2]
+        died = distributed.KilledWorker("dpcn-med-x-3", SimpleNamespace(address="tcp://127.0.0.1:1"), ATTEMPTS - 1)
+        row, error = _row_of(self._Failed(died), job)
+        assert error is died and row["id"] == "p2" and row["status"] == "internal error"
+        assert row["message"].startswith(f"KilledWorker: Attempted to run task 'dpcn-med-x-3' on {ATTEMPTS} different")
+
+    def test_a_pair_that_raised_twice_is_an_internal_error(self, cohort, tmp_path):
+        from dpcn_med.cluster import _row_of
+
+        job = plan_batch(cohort[0], tmp_path / "out", settings=SETTINGS).jobs[0]
+        row, _ = _row_of(self._Failed(RuntimeError("ITK ran out of memory")), job)
+        assert (row["status"], row["message"]) == ("internal error", "RuntimeError: ITK ran out of memory")
 
 
 class TestWithoutDask:
