@@ -29,7 +29,7 @@ Convention:
 """
 
 from dpcn_med.io._common import IMAGE_WRITE_SUFFIXES
-from dpcn_med.io.atomic import _umask as _umask  # private, re-exported for tests/test_train.py
+from dpcn_med.io.atomic import _umask as _umask  # private, re-exported for tests/train/test_loop.py
 from dpcn_med.io.atomic import atomic_output, interrupts_deferred
 from dpcn_med.io.headers import GRID_TOLERANCE, MAX_ORIGIN_MM, SPACING_RANGE_MM, WORKING_COPIES, check_memory
 from dpcn_med.io.images import check_mask, check_volume, image_summary, read_image, read_mask, write_image
