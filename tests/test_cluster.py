@@ -6,6 +6,7 @@ import csv
 import os
 import signal
 import sys
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -94,10 +95,14 @@ class TestLocalCluster:
             if killed:
                 return
             client = distributed.default_client()
-            busy = [address for address, keys in client.processing().items() if keys]
-            pid = client.run(os.getpid, workers=busy[:1])[busy[0]]
-            os.kill(pid, signal.SIGKILL)
-            killed.append(client.processing()[busy[0]])
+            for _ in range(100):  # the scheduler may not have handed out the next pair yet
+                busy = {address: keys for address, keys in client.processing().items() if keys}
+                if busy:
+                    break
+                time.sleep(0.05)
+            address, keys = next(iter(busy.items()))
+            os.kill(client.run(os.getpid, workers=[address])[address], signal.SIGKILL)
+            killed.append(keys)
 
         rows = run_batch(batch, on_row=kill_a_busy_worker, workers=2)
         assert killed and killed[0]  # a pair was running on the worker when it died
