@@ -5,6 +5,14 @@
 
 __version__ = "0.1.0"
 
-from dpcn_med.registration import RegistrationResult, register  # noqa: E402  (after __version__, which it imports)
-
 __all__ = ["RegistrationResult", "__version__", "register"]
+
+
+def __getattr__(name: str):
+    # The public API is imported on first use, so that `dpcn-med --help` and `import dpcn_med.io` do not pay for
+    # torch and MONAI.
+    if name in ("RegistrationResult", "register"):
+        from dpcn_med import registration
+
+        return getattr(registration, name)
+    raise AttributeError(f"module 'dpcn_med' has no attribute {name!r}")

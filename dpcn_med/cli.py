@@ -20,7 +20,7 @@ from pathlib import Path
 from dpcn_med import __version__
 from dpcn_med.errors import InputError
 from dpcn_med.outputs import MIN_CONFIDENCE, OUTPUT_NAMES, RegistrationSettings, check_output_folder
-from dpcn_med.preprocess import MODALITIES
+from dpcn_med.modalities import MODALITIES
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_LOW_CONFIDENCE = 0, 1, 2, 3
 

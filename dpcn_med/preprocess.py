@@ -15,11 +15,11 @@ from dpcn_med import io
 from dpcn_med.arguments import check_integer, check_pair, check_real
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import CanonicalGrid
+from dpcn_med.modalities import MODALITIES
 
 if TYPE_CHECKING:
     import pyvista
 
-MODALITIES = ("auto", "ct", "mr", "us")
 LOWEST_HU = -1024.0
 """No Hounsfield value lies below air's -1024 HU: a CT's voxels below it are the scanner's padding."""
 OUTLIER_PERCENTILES = (0.1, 99.9)

@@ -46,6 +46,7 @@ LAYERS: dict[str, int] = {
     "dpcn_med.errors": 0,
     "dpcn_med.arguments": 0,
     "dpcn_med.devices": 0,
+    "dpcn_med.modalities": 0,
     "dpcn_med.__version__": 0,
 }
 """Layer of each module (a package's entry covers its submodules: ``dpcn_med.io`` and ``dpcn_med.io.*`` alike). A

@@ -9,7 +9,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dpcn_med.errors import InputError, InputNotFoundError
-from dpcn_med.geometry import RAS_TO_LPS
 
 if TYPE_CHECKING:
     import pyvista
@@ -67,6 +66,8 @@ def read_mesh(path: str | os.PathLike) -> pyvista.PolyData:
     if not np.isfinite(mesh.points).all():  # a NaN point became index -2**63 when voxelised
         raise InputError(f"{name}: has points with NaN or infinite coordinates; export it again")
     if space == "RAS":
+        from dpcn_med.geometry import RAS_TO_LPS  # here: geometry imports torch, which reading an image needs not
+
         mesh = mesh.transform(RAS_TO_LPS, inplace=False)  # a copy; active normals follow
         if "SPACE" in mesh.field_data:
             mesh.field_data["SPACE"] = ["LPS"]
