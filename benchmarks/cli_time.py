@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
+from markdown import count_type, generated_by, publish, source_label  # noqa: E402  (the scripts' shared helpers)
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("read", "preprocess", "solve", "refine", "resample", "total")
@@ -37,15 +37,6 @@ VARIANTS = {  # name: extra options of `dpcn-med register`
     "no-refine": ["--no-refine"],
     "slicer": ["--no-overview", "--no-resampled"],  # what the Slicer module runs when no output volume is asked for
 }
-
-
-def _label(tree: Path) -> str:
-    """The tree's commit (short hash, ``+`` when it has uncommitted changes), else its path."""
-    def git(*args: str) -> str:
-        return subprocess.run(["git", "-C", str(tree), *args], capture_output=True, text=True).stdout.strip()
-
-    commit = git("rev-parse", "--short", "HEAD")
-    return f"{commit}{'+' if git('status', '--porcelain', '--untracked-files=no') else ''}" if commit else str(tree)
 
 
 def _run(tree: Path, fixed: Path, moving: Path, extra: list[str], folder: Path) -> dict[str, float]:
@@ -95,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     from dpcn_med.demo import demo_pair
 
     trees = [ROOT, *(tree.resolve() for tree in args.compare)]  # the runs' working folder is a temporary one
-    labels = [_label(tree) for tree in trees]
+    labels = [source_label(tree) for tree in trees]
     results: dict[tuple[str, str], list[dict[str, float]]] = {}
     with tempfile.TemporaryDirectory(prefix="dpcn-med-cli-time-") as name:
         folder = Path(name)

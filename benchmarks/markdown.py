@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import shlex
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -16,7 +17,8 @@ from dpcn_med.cli import count_type
 from dpcn_med.errors import InputError
 from dpcn_med.io import read_csv, write_text
 
-__all__ = ["count_type", "fraction_type", "generated_by", "publish", "read_unique_rows", "refuse_run_options"]
+__all__ = ["count_type", "fraction_type", "generated_by", "publish", "read_unique_rows", "refuse_run_options",
+           "source_label"]
 
 
 def fraction_type(text: str) -> float:
@@ -72,3 +74,12 @@ def publish(text: str, output: Path) -> int:
     output.parent.mkdir(parents=True, exist_ok=True)
     write_text(text, output)  # atomically: an interrupted run leaves the last table as it was
     return 0
+
+
+def source_label(tree: Path) -> str:
+    """The tree's commit (short hash, ``+`` when it has uncommitted changes), else its path."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(tree), *args], capture_output=True, text=True).stdout.strip()
+
+    commit = git("rev-parse", "--short", "HEAD")
+    return f"{commit}{'+' if git('status', '--porcelain', '--untracked-files=no') else ''}" if commit else str(tree)
