@@ -36,6 +36,7 @@ from dpcn_med.geometry import (
     physical_transform,
     similarity_transform,
 )
+from dpcn_med.options import LEARNING_FREE, check_options, load_feature_model  # noqa: F401  (public here too)
 from dpcn_med.preprocess import (
     PreparedImage,
     Preprocessing,
@@ -44,7 +45,6 @@ from dpcn_med.preprocess import (
     resample_to_grid,
     to_tensor,
 )
-from dpcn_med.options import LEARNING_FREE, check_options, load_feature_model  # noqa: F401  (public here too)
 from dpcn_med.refine import (
     MIN_LEVEL_VOXELS,
     Choice,
