@@ -13,12 +13,12 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dpcn_med import io
 from dpcn_med.errors import InputError
 from dpcn_med.outputs import (
     OUTPUT_NAMES,
-    Progress,
     RegistrationSettings,
     check_output_folder,
     make_folder,
@@ -28,11 +28,17 @@ from dpcn_med.outputs import (
     registration_request,
 )
 
+if TYPE_CHECKING:
+    from dpcn_med.registration import Progress
+
 PAIR_COLUMNS = ("id", "fixed", "moving", "fixed_mask", "moving_mask")
 """The columns of a pairs file; fixed and moving are required."""
 
 SUMMARY_COLUMNS = ("id", "status", "confidence", "rotation_deg", "seconds", "message")
 """The columns of summary.csv."""
+
+FAILED = ("bad input", "internal error")
+"""The statuses of pairs that have no result: an input error, and any other error."""
 
 _PATHS = ("fixed", "moving", "fixed_mask", "moving_mask")
 
@@ -273,16 +279,23 @@ def run_batch(batch: Batch, *, on_row: RowCallback | None = None,
     """
     rows: dict[int, dict[str, str]] = {}
 
+    def write_summary() -> None:
+        make_folder(batch.output)
+        io.write_csv([rows[index] for index in sorted(rows)], batch.summary, columns=list(SUMMARY_COLUMNS))
+
     def record(job: PairJob, row: dict[str, str], error: Exception | None) -> None:
         rows[job.index] = row
-        make_folder(batch.output)  # after every pair: an interrupted run's summary lists what it finished
-        io.write_csv([rows[index] for index in sorted(rows)], batch.summary, columns=list(SUMMARY_COLUMNS))
+        write_summary()  # after every pair: an interrupted run's summary lists what it finished
         if on_row is not None:
             on_row(job, row, error)
 
-    for job in batch.jobs:
+    for job in batch.jobs:  # the pairs done earlier, with one write of the summary for all of them
         if job.earlier is not None:
-            record(job, earlier_row(job, batch.settings), None)
+            rows[job.index] = earlier_row(job, batch.settings)
+            if on_row is not None:
+                on_row(job, rows[job.index], None)
+    if rows:
+        write_summary()
     if workers is not None or scheduler is not None:
         from dpcn_med.cluster import run_on_dask
 

@@ -19,8 +19,8 @@ from pathlib import Path
 
 from dpcn_med import __version__
 from dpcn_med.errors import InputError
-from dpcn_med.outputs import MIN_CONFIDENCE, OUTPUT_NAMES, RegistrationSettings, check_output_folder
 from dpcn_med.modalities import MODALITIES
+from dpcn_med.outputs import MIN_CONFIDENCE, OUTPUT_NAMES, RegistrationSettings, check_output_folder
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_LOW_CONFIDENCE = 0, 1, 2, 3
 
@@ -241,7 +241,7 @@ _STATUS_CODES = {"bad input": EXIT_INPUT, "internal error": EXIT_INTERNAL, "low 
 
 
 def _register_batch(args: argparse.Namespace) -> int:
-    from dpcn_med.batch import plan_batch, run_batch
+    from dpcn_med.batch import FAILED, plan_batch, run_batch
 
     if args.workers is not None or args.scheduler is not None:
         from dpcn_med.cluster import require_dask
@@ -263,7 +263,7 @@ def _register_batch(args: argparse.Namespace) -> int:
         if error is not None and args.verbose:
             traceback.print_exception(type(error), error, error.__traceback__)
         line = f"{label(job)}{row['status']} {row['message']}".rstrip()
-        if row["status"] in ("bad input", "internal error"):  # errors, on stderr, -q or not
+        if row["status"] in FAILED:  # errors, on stderr, -q or not
             print(line, file=sys.stderr)
         elif not args.quiet:
             print(line)

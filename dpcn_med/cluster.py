@@ -17,12 +17,10 @@ import socket
 import time
 import uuid
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING
 
+from dpcn_med.batch import FAILED, Batch, PairJob, error_row, register_job
 from dpcn_med.errors import InputError
-
-if TYPE_CHECKING:
-    from dpcn_med.batch import Batch, PairJob
+from dpcn_med.outputs import model_identity
 
 INSTALL = "pip install 'dpcn_med[cluster]'"
 """How to install what this module needs."""
@@ -102,7 +100,7 @@ def run_on_dask(batch: Batch, record: Callable[[PairJob, dict, Exception | None]
                 job = futures.pop(future)
                 row, error = _row_of(future, job)
                 done += 1
-                failed += row["status"] in ("bad input", "internal error")
+                failed += row["status"] in FAILED
                 record(job, row, error)
                 if status is not None:
                     status(_status_line(done, failed, len(futures), slots, time.monotonic() - started))
@@ -111,8 +109,6 @@ def run_on_dask(batch: Batch, record: Callable[[PairJob, dict, Exception | None]
 
 
 def _row_of(future, job: PairJob) -> tuple[dict, Exception | None]:
-    from dpcn_med.batch import error_row
-
     try:
         return future.result(), None
     except Exception as error:  # it raised ATTEMPTS times, or KilledWorker: the workers running it died
@@ -136,9 +132,6 @@ def register_on_worker(job: PairJob, settings, model: str | dict[str, str]) -> d
     Raises:
         Exception: an internal error of the registration, so that Dask runs the pair again elsewhere.
     """
-    from dpcn_med.batch import error_row, register_job
-    from dpcn_med.outputs import model_identity
-
     here = model_identity(settings.model)
     if here != model:
         return error_row(job.id, "bad input", f"{settings.model}: the model on worker {socket.gethostname()} "

@@ -16,9 +16,13 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dpcn_med import io
 from dpcn_med.errors import InputError
+
+if TYPE_CHECKING:
+    from dpcn_med.registration import Progress  # at run time registration imports torch, which outputs needs not
 
 MIN_CONFIDENCE = 0.003
 """Default threshold on the solver's confidence: a result below it is written and flagged as possibly wrong.
@@ -30,9 +34,6 @@ OUTPUT_NAMES = ("transform.tfm", "transform.h5", "inverse.tfm", "inverse.h5", "m
 
 STAGING_PREFIX = ".dpcn-med-"
 """Name prefix of the hidden staging folder inside an output folder."""
-
-Progress = Callable[[str, float], None]
-
 
 @dataclass(frozen=True)
 class RegistrationSettings:
