@@ -15,18 +15,39 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import SimpleITK as sitk
+import torch
 
 from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequence
 from dpcn_med.errors import InputError
-from dpcn_med.evaluation import target_registration_error
 from dpcn_med.geometry import homogeneous_matrix, similarity_transform
+from dpcn_med.local_search import (
+    Level,
+    Samples,
+    fixed_samples,
+    itk_step_weights,
+    pyramid_level,
+    regular_step_descent,
+    residual_matrices,
+    volume,
+    with_gradient,
+)
 from dpcn_med.preprocess import clip_outliers
 
 Masks = tuple[sitk.Image | None, sitk.Image | None]
+
+CPU = torch.device("cpu")
+
+MIN_STEP_MM = 0.01
+"""The finest level's descent stops when its step falls under this (mm; ITK's examples' minimum step)."""
+
+COARSE_STOP_VOXELS = 0.02
+"""A coarser level's descent stops when its step falls under this share of the level's finest voxel spacing (0.08 mm on
+4 mm voxels), the finest level's at :data:`MIN_STEP_MM`: the next level goes on from there with a step of half its
+own voxel (why this share: docs/design_notes/registration.md)."""
 
 
 @dataclass(frozen=True)
@@ -50,8 +71,11 @@ class Refinement:
             sampled when the user gives no fixed mask.
         starts: global candidates refined: the solver's choice and up to ``starts - 1`` runner-ups (1: its choice
             only). Every one runs the coarsest pyramid level (:func:`refine_candidates`).
-        survivors: how many of them (at least 1) go on to each next level, by their metric (the last value holds for
-            the rest).
+        survivors: at most how many of them (at least 1) go on to each next level, by their metric (the last value
+            holds for the rest); only those ``close`` to the best go on.
+        close: in ``(0, 1]``: a start stays in the search only while its metric (``-MI``) is at most ``close`` times
+            the best start's: it stops when the best has converged on a level, and goes on to the next level only
+            if it is that close (1: only ties go on; the best goes on alone where no other is close).
         stored_start: the stored pose (identity) is one more start, after the solver's candidates, so that inputs
             already roughly aligned (one scanner frame, or aligned by hand) stay aligned where phase correlation
             misses. Where the stored pose leaves no overlap (unrelated scanner frames) it is dropped before any work,
@@ -71,7 +95,8 @@ class Refinement:
     max_step_mm: float | None = None
     mask_margin_voxels: int = 3
     starts: int = 16
-    survivors: tuple[int, ...] = (2, 1)
+    survivors: tuple[int, ...] = (4, 1)
+    close: float = 0.5
     stored_start: bool = True
     seed: int = 20261123
 
@@ -95,6 +120,7 @@ class Refinement:
             "starts": check_integer("starts", self.starts, minimum=1),
             "survivors": tuple(check_integer(f"survivors[{level}]", count, minimum=1)
                                for level, count in enumerate(check_sequence("survivors", self.survivors))),
+            "close": check_real("close", self.close, minimum=0, above=True, maximum=1),
             "stored_start": check_flag("stored_start", self.stored_start),
             # SimpleITK's seed is an unsigned 32-bit integer, and 0 is sitkWallClock: a new seed on every run.
             "seed": check_integer("seed", self.seed, minimum=1, maximum=2 ** 32 - 1),
@@ -227,23 +253,6 @@ def _lost_overlap(error: RuntimeError) -> bool:
     return "do not sufficiently overlap" in str(error) or "outside moving image buffer" in str(error)
 
 
-def image_pyramid(fixed: sitk.Image, moving: sitk.Image, settings: Refinement = Refinement()
-                  ) -> list[tuple[sitk.Image, sitk.Image]]:
-    """Both images per refinement level, coarse to fine: float32, smoothed (``settings.smoothing_mm``, physical
-    sigma) and shrunk (``settings.shrink_factors``), computed once for every start."""
-    levels = []
-    for factor, sigma in zip(settings.shrink_factors, settings.smoothing_mm, strict=True):
-        pair = []
-        for image in (fixed, moving):
-            image = sitk.Cast(image, sitk.sitkFloat32)
-            if sigma > 0:
-                image = sitk.SmoothingRecursiveGaussian(image, sigma)
-            factors = level_factors(image.GetSize(), factor)
-            pair.append(sitk.Shrink(image, factors) if max(factors) > 1 else image)
-        levels.append((pair[0], pair[1]))
-    return levels
-
-
 @dataclass(frozen=True)
 class Choice:
     """What :func:`choose_and_refine` chose.
@@ -253,7 +262,7 @@ class Choice:
         fixed_to_moving: that start refined, or the start itself where refining did not lower the metric.
         refined: whether ``fixed_to_moving`` is the refined transform.
         metric: Mattes mutual information at ``"stored"`` (identity), ``"dpc"`` (the start kept) and ``"refined"``
-            (``None`` where the pose leaves no overlap, or nothing was refined).
+            on the finest level's samples (``None`` where the pose leaves no overlap, or nothing was refined).
         candidate_metrics: each start's metric after the coarsest level (``None`` without overlap).
     """
 
@@ -264,105 +273,142 @@ class Choice:
     candidate_metrics: list[float | None]
 
 
+def search_levels(fixed: sitk.Image, moving: sitk.Image, masks: Masks, centre: np.ndarray,
+                  settings: Refinement = Refinement(), device: torch.device = CPU) -> list[Level]:
+    """The search's levels, coarse to fine, on ``device``: both images smoothed (``settings.smoothing_mm``) and
+    shrunk (``settings.shrink_factors``, :func:`level_factors`) once for every start, and up to ``settings.samples``
+    fixed samples of each inside the fixed mask, drawn with ``settings.seed``."""
+    fixed_volume, moving_volume = volume(fixed, device), volume(moving, device)
+    moving_mask = None if masks[1] is None else volume(masks[1], device)
+    generator = torch.Generator().manual_seed(settings.seed)
+    levels = []
+    for factor, sigma in zip(settings.shrink_factors, settings.smoothing_mm, strict=True):
+        fixed_level = pyramid_level(fixed_volume, level_factors(fixed.GetSize(), factor), sigma)
+        moving_level = pyramid_level(moving_volume, level_factors(moving.GetSize(), factor), sigma)
+        samples = fixed_samples(fixed_level, masks[0], settings.samples, settings.histogram_bins, centre, generator)
+        levels.append(Level(samples=samples, moving=with_gradient(moving_level), moving_mask=moving_mask,
+                            bins=settings.histogram_bins, moving_range=(float(moving_level.values.min()),
+                                                                        float(moving_level.values.max()))))
+    return levels
+
+
 def choose_and_refine(fixed: sitk.Image, moving: sitk.Image, starts: list[sitk.Transform], masks: Masks,
-                      settings: Refinement = Refinement(), progress: Callable[[float], None] | None = None) -> Choice:
+                      settings: Refinement = Refinement(), progress: Callable[[float], None] | None = None,
+                      device: torch.device = CPU) -> Choice:
     """Refine every start (:func:`refine_candidates`), keep the best, and keep its refined transform only if that
-    lowers the metric at full resolution.
+    lowers the metric on the finest level.
 
     Args:
         fixed: the fixed image as read.
         moving: the moving image as read.
-        starts: fixed to moving, the solver's choice first, the stored pose last when it is one.
+        starts: fixed to moving, the solver's choice first, the stored pose last when it is one; all rigid
+            (``VersorRigid3DTransform``) or all similarity transforms.
         masks: where the metric is sampled (:func:`metric_masks`).
         progress: called with the fraction of the refinement done, in ``[0, 1]``.
+        device: where the search runs (the solver's device).
     """
     # The metric's histogram spans each image's range: far outliers would squeeze the anatomy into its first bin.
     fixed_values, moving_values = clip_outliers(fixed), clip_outliers(moving)
-    metric: dict[str, float | None] = {"stored": None, "dpc": None, "refined": None}
-    metric["stored"] = mattes_metric(fixed_values, moving_values, sitk.Transform(3, sitk.sitkIdentity), masks,
-                                     settings)
-    pyramid = image_pyramid(fixed_values, moving_values, settings)
-    index, candidate, candidate_metrics = refine_candidates(pyramid, starts, masks, settings, progress)
-    metric["dpc"] = mattes_metric(fixed_values, moving_values, starts[index], masks, settings)
-    if metric["dpc"] is not None and candidate is not None:
-        metric["refined"] = mattes_metric(fixed_values, moving_values, candidate, masks, settings)
-        # The local optimiser only ever starts from a global estimate; keep it only if it improved the metric.
-        if metric["refined"] is not None and metric["refined"] <= metric["dpc"]:
-            return Choice(index, candidate, True, metric, candidate_metrics)
+    centre = np.asarray(starts[0].GetFixedParameters()[:3])
+    rigid = starts[0].GetName() == "VersorRigid3DTransform"
+    levels = search_levels(fixed_values, moving_values, masks, centre, settings, device)
+    matrices = torch.as_tensor(np.stack([homogeneous_matrix(start) for start in starts]), device=device)
+    index, refined, candidate_metrics = refine_candidates(levels, matrices, centre, rigid, settings, progress)
+    finest = levels[-1]
+    checked = torch.stack([torch.eye(4, dtype=torch.float64, device=device), matrices[index],
+                           matrices[index] if refined is None else refined])
+    values = finest.metric(checked, torch.zeros(3, 6 if rigid else 7, dtype=torch.float64, device=device),
+                           centre).tolist()
+    metric: dict[str, float | None] = {key: value if math.isfinite(value) else None
+                                       for key, value in zip(("stored", "dpc", "refined"), values)}
+    if refined is None or metric["dpc"] is None:
+        metric["refined"] = None
+    # The local optimiser only ever starts from a global estimate; keep it only if it improved the metric.
+    elif metric["refined"] is not None and metric["refined"] <= metric["dpc"]:
+        transform = similarity_transform(refined.cpu().numpy(), centre, rigid=rigid)
+        return Choice(index, transform, True, metric, candidate_metrics)
     return Choice(index, starts[index], False, metric, candidate_metrics)
 
 
-def refine_candidates(pyramid: list[tuple[sitk.Image, sitk.Image]], candidates: list[sitk.Transform], masks: Masks,
+def refine_candidates(levels: list[Level], starts: torch.Tensor, centre: np.ndarray, rigid: bool,
                       settings: Refinement = Refinement(), progress: Callable[[float], None] | None = None
-                      ) -> tuple[int, sitk.Transform | None, list[float | None]]:
+                      ) -> tuple[int, torch.Tensor | None, list[float | None]]:
     """The local search from several global candidates, by successive halving over the pyramid.
 
-    Every candidate that overlaps runs the coarsest level; after each level only the ``settings.survivors`` best (by
-    the metric on that level's images) go on. Starts that reach one pose are merged (:func:`_merge_same_poses`).
+    Every candidate that overlaps runs the coarsest level, all in one batch; after each level only the
+    ``settings.survivors`` best (by the metric on that level) go on. Starts that reach one pose are merged
+    (:func:`_merge_same_poses`).
 
     Args:
-        pyramid: :func:`image_pyramid` of the pair.
-        candidates: the starts, fixed to moving: the solver's global estimates, its own choice first, and the stored
-            pose last when it is one (:attr:`Refinement.stored_start`).
+        levels: :func:`search_levels` of the pair.
+        starts: ``(K, 4, 4)`` float64 fixed-to-moving matrices on the levels' device: the solver's global estimates,
+            its own choice first, and the stored pose last when it is one (:attr:`Refinement.stored_start`).
+        centre: the residual transforms' centre (mm).
+        rigid: 6 parameters (rigid) or 7 (similarity).
 
     Returns:
-        ``(index, transform, metrics)``: the winner's index in ``candidates``, its refined transform (``None`` when no
-        candidate overlaps the fixed mask) and every candidate's metric after the coarsest level (``None`` without
-        overlap).
+        ``(index, matrix, metrics)``: the winner's index in ``starts``, its refined ``(4, 4)`` matrix (``None`` when
+        no candidate overlaps the fixed mask) and every candidate's metric after the coarsest level (``None``
+        without overlap).
     """
-    # The images are pre-shrunk; each level's first step shrinks with them (Refinement.max_step_mm), as ITK's
-    # multi-resolution examples (MultiResImageRegistration1) shrink the optimiser's step between levels.
-    coarsest = first_step_mm(settings, pyramid[0][0].GetSpacing())
-    level_settings = [replace(settings, shrink_factors=(1,), smoothing_mm=(0.0,),
-                              max_step_mm=coarsest * factor / settings.shrink_factors[0])
-                      for factor in settings.shrink_factors]
-    # Each level's fixed image cropped to the fixed mask's box once, for every metric evaluation on that level.
-    cropped = [fixed if masks[0] is None else _crop_to_mask(fixed, masks[0]) for fixed, _ in pyramid]
-    coarse_moving = pyramid[0][1]
-    survivors = [(index, candidate) for index, candidate in enumerate(candidates)
-                 if mattes_metric(cropped[0], coarse_moving, candidate, masks, level_settings[0],
-                                  crop=False) is not None]
-    metrics: list[float | None] = [None] * len(candidates)
-    for level, (fixed, moving) in enumerate(pyramid):
+    count = 6 if rigid else 7
+    zeros = torch.zeros(len(starts), count, dtype=torch.float64, device=starts.device)
+    overlapping = torch.isfinite(levels[0].metric(starts, zeros, centre)).cpu()
+    survivors = [(index, starts[index]) for index in range(len(starts)) if overlapping[index]]
+    # Each level's first step shrinks with its images, as ITK's multi-resolution examples (MultiResImageRegistration1)
+    # shrink the optimiser's step between levels (Refinement.max_step_mm).
+    coarsest = first_step_mm(settings, levels[0].samples.spacing)
+    metrics: list[float | None] = [None] * len(starts)
+    leading: dict[int, float] = {}  # each survivor's metric on the last level
+    for level, (search, factor) in enumerate(zip(levels, settings.shrink_factors, strict=True)):
         if level > 0:
             survivors = survivors[:settings.survivors[min(level, len(settings.survivors)) - 1]]
-        scored = []
-        for done, (index, transform) in enumerate(survivors, start=1):
-            try:
-                transform = refine_transform(fixed, moving, transform, masks, level_settings[level])
-                value = mattes_metric(cropped[level], moving, transform, masks, level_settings[level],
-                                      crop=False) if len(survivors) > 1 or level == 0 else None
-            except RuntimeError as error:  # the search drifted off the moving image: this start is lost
-                if not _lost_overlap(error):
-                    raise
-                value = None
-            scored.append((math.inf if value is None else value, index, transform))
-            if level == 0:
-                metrics[index] = value
-            if progress is not None:
-                progress((level + done / len(survivors)) / len(pyramid))
-        survivors = [(index, transform) for _, index, transform in _merge_same_poses(
-            sorted(scored, key=lambda item: item[0]), cropped[level])]
+            survivors = [survivor for survivor in survivors if leading[survivor[0]] <= settings.close * leading[
+                survivors[0][0]] or leading[survivors[0][0]] >= 0]
+        if not survivors:
+            break
+        batch = torch.stack([matrix for _, matrix in survivors])
+        parameters, values = regular_step_descent(
+            lambda parameters, poses: search.metric(batch[poses], parameters, centre),  # noqa: B023
+            zeros[:len(survivors)],
+            coarsest * factor / settings.shrink_factors[0], settings.iterations, settle=settings.close,
+            min_step=MIN_STEP_MM if level == len(levels) - 1 else COARSE_STOP_VOXELS * min(search.samples.spacing),
+            weights=itk_step_weights(count, search.samples.radius, starts.device))
+        refined = batch @ residual_matrices(parameters, centre, search.samples.radius)
+        scored = [(value, index, matrix) for value, (index, _), matrix in zip(values.tolist(), survivors, refined)]
+        leading = {index: value for value, index, _ in scored}
+        if level == 0:
+            for value, index, _ in scored:
+                metrics[index] = value if math.isfinite(value) else None
+        if progress is not None:
+            progress((level + 1) / len(levels))
+        survivors = [(index, matrix) for _, index, matrix in _merge_same_poses(
+            sorted(scored, key=lambda item: item[0]), search.samples, float(search.samples.spacing.max()))]
     if not survivors:
         return 0, None, metrics
     return survivors[0][0], survivors[0][1], metrics
 
 
-def _merge_same_poses(scored: list[tuple[float, int, sitk.Transform]], fixed: sitk.Image
-                      ) -> list[tuple[float, int, sitk.Transform]]:
-    """``scored`` (metric, start index, refined transform; best metric first) with the starts that reached one pose
-    (within a voxel of ``fixed``, on average over its corners) merged: the best metric and its transform, under the
-    lowest start index (the solver's ranking, the stored pose last)."""
-    ends = np.asarray(fixed.GetSize()) - 1
-    corners = [fixed.TransformContinuousIndexToPhysicalPoint((ends * np.asarray(corner)).tolist())
-               for corner in np.ndindex(2, 2, 2)]
-    tolerance = max(fixed.GetSpacing())
-    merged: list[tuple[float, int, sitk.Transform]] = []
-    for value, index, transform in scored:
-        same = next((place for place, (_, _, other) in enumerate(merged) if math.isfinite(value)
-                     and target_registration_error(transform, other, corners) < tolerance), None)
+def _merge_same_poses(scored: list[tuple[float, int, torch.Tensor]], samples: Samples, tolerance: float
+                      ) -> list[tuple[float, int, torch.Tensor]]:
+    """``scored`` (metric, start index, refined ``(4, 4)`` matrix; best metric first) with the starts that reached
+    one pose (within ``tolerance`` mm on average over the corners of the ``samples``' box) merged: the best metric
+    and its matrix, under the lowest start index (the solver's ranking, the stored pose last)."""
+    points = samples.points.double()
+    low, high = points.min(0).values, points.max(0).values
+    corners = torch.stack([torch.where(torch.tensor(corner, device=points.device).bool(), high, low)
+                           for corner in np.ndindex(2, 2, 2)]) if len(points) else torch.zeros(1, 3)
+    merged: list[tuple[float, int, torch.Tensor]] = []
+
+    def distance(first: torch.Tensor, second: torch.Tensor) -> float:
+        difference = corners @ (first - second)[:3, :3].T.to(corners) + (first - second)[:3, 3].to(corners)
+        return float(difference.norm(dim=1).mean())
+
+    for value, index, matrix in scored:
+        same = next((place for place, (_, _, other) in enumerate(merged)
+                     if math.isfinite(value) and distance(matrix, other) < tolerance), None)
         if same is None:
-            merged.append((value, index, transform))
+            merged.append((value, index, matrix))
         elif index < merged[same][1]:
             merged[same] = (merged[same][0], index, merged[same][2])
     return merged

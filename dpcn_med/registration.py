@@ -357,7 +357,7 @@ def _choose_and_refine(inputs: _Inputs, grids: _Grids, starts: _Starts, options:
     with clock.step("refine", "refining", 0.4):
         masks = metric_masks(inputs.fixed_mask, grids.fixed.foreground, inputs.moving_mask, options.refinement)
         return choose_and_refine(inputs.fixed, inputs.moving, starts.transforms, masks, options.refinement,
-                                 lambda fraction: clock.report("refining", 0.4 + 0.5 * fraction))
+                                 lambda fraction: clock.report("refining", 0.4 + 0.5 * fraction), options.device)
 
 
 def _result(inputs: _Inputs, grids: _Grids, starts: _Starts, choice: Choice, options: _Options,

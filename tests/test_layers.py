@@ -29,6 +29,7 @@ LAYERS: dict[str, int] = {
     "dpcn_med.models": 4,
     "dpcn_med.synth": 4,
     "dpcn_med.refine": 4,
+    "dpcn_med.local_search": 4,
     "dpcn_med.options": 4,
     "dpcn_med.result": 4,
     "dpcn_med.samples": 4,
@@ -36,6 +37,7 @@ LAYERS: dict[str, int] = {
     # 3: from an image to a solver grid, and the measures of a pose.
     "dpcn_med.preprocess": 3,
     "dpcn_med.evaluation": 3,
+    "dpcn_med.mutual_information": 3,
     # 2: the solver, torch only.
     "dpcn_med.solver": 2,
     # 1: the conventions and the files.
