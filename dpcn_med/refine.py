@@ -95,7 +95,7 @@ class Refinement:
     max_step_mm: float | None = None
     mask_margin_voxels: int = 3
     starts: int = 16
-    survivors: tuple[int, ...] = (4, 1)
+    survivors: tuple[int, ...] = (6, 1)
     close: float = 0.5
     stored_start: bool = True
     seed: int = 20261123

@@ -102,7 +102,7 @@ class TestCandidates:
 
 class TestRefinementSettings:
     def test_defaults_and_typical_values_construct(self):
-        assert Refinement() == Refinement(shrink_factors=[4, 2, 1], smoothing_mm=[2, 1, 0], survivors=[4, 1])
+        assert Refinement() == Refinement(shrink_factors=[4, 2, 1], smoothing_mm=[2, 1, 0], survivors=[6, 1])
         assert Refinement().max_step_mm is None  # half a coarsest-level voxel
         assert first_step_mm(Refinement(), (5.0, 5.0, 16.0)) == 2.5  # RIRE's 1.25 x 1.25 x 4 mm shrunk 4 times
         assert first_step_mm(Refinement(max_step_mm=2), (8.0, 8.0, 8.0)) == 2.0
