@@ -35,6 +35,14 @@ def _sitk_initialised(kind: int) -> Callable[[sitk.Image, sitk.Image, Path], sit
 
 def _sitk_exhaustive(fixed: sitk.Image, moving: sitk.Image, folder: Path) -> sitk.Transform:
     """Mattes MI over a grid of Euler angles (45-degree steps, 4x shrunk), then the local optimiser from the best."""
+    return exhaustive_search(fixed, moving)
+
+
+def exhaustive_search(fixed: sitk.Image, moving: sitk.Image, step_degrees: float = 45.0) -> sitk.Transform:
+    """SimpleITK's exhaustive search: Mattes MI at every Euler angle of a grid of ``step_degrees`` (a divisor of 90:
+    about x and z over the whole turn, about y over half of it), 4x shrunk, then the local optimiser from the best;
+    fixed to moving."""
+    steps = round(90 / step_degrees)
     fixed, moving = sitk.Cast(fixed, sitk.sitkFloat32), sitk.Cast(moving, sitk.sitkFloat32)
     start = sitk.CenteredTransformInitializer(fixed, moving, sitk.Euler3DTransform(),
                                               sitk.CenteredTransformInitializerFilter.GEOMETRY)
@@ -47,7 +55,8 @@ def _sitk_exhaustive(fixed: sitk.Image, moving: sitk.Image, folder: Path) -> sit
     method.SetShrinkFactorsPerLevel([4])
     method.SetSmoothingSigmasPerLevel([2.0])
     method.SmoothingSigmasAreSpecifiedInPhysicalUnitsOn()
-    method.SetOptimizerAsExhaustive(numberOfSteps=[4, 2, 4, 0, 0, 0], stepLength=math.pi / 4)
+    method.SetOptimizerAsExhaustive(numberOfSteps=[2 * steps, steps, 2 * steps, 0, 0, 0],
+                                    stepLength=math.radians(step_degrees))
     method.SetOptimizerScales([1, 1, 1, 1, 1, 1])
     method.SetInitialTransform(start, inPlace=True)
     method.Execute(fixed, moving)
