@@ -282,3 +282,26 @@ class TestFailureSignals:
         monkeypatch.setattr(failure_signals, "run", run)
         assert failure_signals.main(["--cases", "mr-mr", "--trials", "2", "--output", str(output)]) == 0
         assert output.is_file() and output.with_suffix(".csv").is_file()
+
+
+class TestCompareRuns:
+    def test_the_committed_table_is_its_runs_joined(self, tmp_path):
+        folder = ROOT / "docs" / "benchmarks" / "refine_speed"
+        committed = (folder.parent / "refine_speed.md").read_text()
+        output = tmp_path / "refine_speed.md"
+        assert script("compare_runs").main([str(folder / "e7efb34" / "results.csv"),
+                                            str(folder / "e02ba00" / "results.csv"), "--labels", "e7efb34", "e02ba00",
+                                            "--output", str(output)]) == 0
+        assert output.read_text().split("\n\n", 2)[2] == committed.split("\n\n", 2)[2]
+        assert "| seg3d | dpcn | 12 | 4.36 | 1.50 | 2.97x | 12 / 12 |" in committed
+
+    def test_runs_with_no_pose_in_common_are_refused(self, tmp_path, capsys):
+        header = "case,bin,trial,method,tre_mm,seconds,peak_mib\n"
+        (tmp_path / "a.csv").write_text(header + "mni,0-30,0,dpcn,0.1,1.0,10\n")
+        (tmp_path / "b.csv").write_text(header + "mni,0-30,1,dpcn,0.1,0.5,10\n")
+        output = tmp_path / "table.md"
+        with pytest.raises(SystemExit) as exit_:
+            script("compare_runs").main([str(tmp_path / "a.csv"), str(tmp_path / "b.csv"), "--output", str(output)])
+        assert exit_.value.code == 2 and "share no pose" in capsys.readouterr().err
+        assert not output.exists()
+
