@@ -69,3 +69,10 @@ def negative_mutual_information(fixed: Tensor, moving: Tensor, valid: Tensor, mo
     valid_count = valid.sum(1)
     overlaps = (valid_count >= MIN_VALID_SAMPLES) & (valid_count >= MIN_VALID_FRACTION * count)
     return torch.where(overlaps, -information, torch.full_like(information, float("inf")))
+
+
+def bin_entropy(bins: Tensor, count: int) -> float:
+    """Shannon entropy (nats) of the histogram of bin indices ``bins`` ``(N,)`` over ``count`` bins: the fixed
+    samples' entropy ``H(F)``, the most mutual information any pose can reach with them."""
+    p = torch.bincount(bins, minlength=count).double() / max(int(bins.numel()), 1)
+    return float(-(p * p.clamp_min(1e-300).log()).sum())

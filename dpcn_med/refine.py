@@ -35,6 +35,7 @@ from dpcn_med.local_search import (
     volume,
     with_gradient,
 )
+from dpcn_med.mutual_information import bin_entropy
 from dpcn_med.preprocess import clip_outliers
 
 Masks = tuple[sitk.Image | None, sitk.Image | None]
@@ -264,6 +265,8 @@ class Choice:
         metric: Mattes mutual information at ``"stored"`` (identity), ``"dpc"`` (the start kept) and ``"refined"``
             on the finest level's samples (``None`` where the pose leaves no overlap, or nothing was refined).
         candidate_metrics: each start's metric after the coarsest level (``None`` without overlap).
+        fixed_entropy: entropy (nats) of the finest level's fixed samples over the metric's bins, the most mutual
+            information a pose can reach with them (``None`` without refinement): the metric's own scale.
     """
 
     index: int
@@ -271,6 +274,7 @@ class Choice:
     refined: bool
     metric: dict[str, float | None]
     candidate_metrics: list[float | None]
+    fixed_entropy: float | None = None
 
 
 def search_levels(fixed: sitk.Image, moving: sitk.Image, masks: Masks, centre: np.ndarray,
@@ -321,13 +325,14 @@ def choose_and_refine(fixed: sitk.Image, moving: sitk.Image, starts: list[sitk.T
                            centre).tolist()
     metric: dict[str, float | None] = {key: value if math.isfinite(value) else None
                                        for key, value in zip(("stored", "dpc", "refined"), values)}
+    entropy = bin_entropy(finest.samples.bins, finest.bins)
     if refined is None or metric["dpc"] is None:
         metric["refined"] = None
     # The local optimiser only ever starts from a global estimate; keep it only if it improved the metric.
     elif metric["refined"] is not None and metric["refined"] <= metric["dpc"]:
         transform = similarity_transform(refined.cpu().numpy(), centre, rigid=rigid)
-        return Choice(index, transform, True, metric, candidate_metrics)
-    return Choice(index, starts[index], False, metric, candidate_metrics)
+        return Choice(index, transform, True, metric, candidate_metrics, entropy)
+    return Choice(index, starts[index], False, metric, candidate_metrics, entropy)
 
 
 def refine_candidates(levels: list[Level], starts: torch.Tensor, centre: np.ndarray, rigid: bool,

@@ -45,6 +45,7 @@ from dpcn_med.preprocess import (
     resample_to_grid,
     to_tensor,
 )
+from dpcn_med.quality import shipped_model, signals
 from dpcn_med.refine import (
     MIN_LEVEL_VOXELS,
     Choice,
@@ -370,6 +371,7 @@ def _result(inputs: _Inputs, grids: _Grids, starts: _Starts, choice: Choice, opt
         with clock.step("resample", "resampling", 0.9):
             resampled = resample_moving(inputs.fixed, inputs.moving, fixed_to_moving)
     confidence = _start_confidence(grids, starts, choice.index, options)
+    values = signals(confidence, overlap, choice.metric, choice.fixed_entropy, choice.candidate_metrics)
     clock.report("done", 1.0)
     return RegistrationResult(
         fixed_to_moving=fixed_to_moving, moving_to_fixed=fixed_to_moving.GetInverse(),
@@ -378,7 +380,8 @@ def _result(inputs: _Inputs, grids: _Grids, starts: _Starts, choice: Choice, opt
         candidate_metrics=choice.candidate_metrics, mode=options.mode, bandwidth=options.bandwidth,
         fixed_grid=grids.fixed_grid, moving_grid=grids.moving_grid,
         modalities=(grids.fixed.modality, grids.moving.modality), metric=choice.metric, refined=choice.refined,
-        overlap=overlap, timings=clock.timings, device=str(options.device),
+        overlap=overlap, fixed_entropy=choice.fixed_entropy,
+        success_probability=None if values is None else shipped_model().probability(values), timings=clock.timings, device=str(options.device),
         model="learning-free" if options.network is None else os.fspath(options.model),
         fixed_image=inputs.fixed, moving_image=inputs.moving, resampled=resampled)
 

@@ -41,6 +41,10 @@ class RegistrationResult:
         refined: whether ``fixed_to_moving`` is the refined transform.
         overlap: share of the fixed foreground that ``fixed_to_moving`` maps inside the moving image's field of view
             (:func:`field_of_view_overlap`).
+        fixed_entropy: entropy (nats) of the fixed samples over the metric's bins, the scale of ``metric`` (``None``
+            without refinement).
+        success_probability: how likely the result is right, by the quality model
+            (:func:`dpcn_med.quality.shipped_model`; ``None`` without refinement).
         timings: wall-clock seconds per step (``read``, ``preprocess``, ``solve``, ``refine``, ``resample``) and
             per solver stage (``solver.*``).
         device: the torch device the solver ran on.
@@ -65,6 +69,8 @@ class RegistrationResult:
     start: str = "phase correlation"
     candidate_metrics: list[float | None] = field(default_factory=list)
     overlap: float = 1.0
+    fixed_entropy: float | None = None
+    success_probability: float | None = None
     timings: dict[str, float] = field(default_factory=dict)
     device: str = "cpu"
     model: str = "learning-free"
@@ -84,7 +90,8 @@ class RegistrationResult:
             "final": describe_transform(self.fixed_to_moving),
             "refined": self.refined, "candidate": self.candidate, "start": self.start,
             "candidate_mattes_mutual_information": self.candidate_metrics, "overlap_fraction": self.overlap,
-            "mattes_mutual_information": self.metric,
+            "mattes_mutual_information": self.metric, "fixed_entropy_nats": self.fixed_entropy,
+            "success_probability": self.success_probability,
             "timings_s": self.timings,
         }
 

@@ -305,3 +305,22 @@ class TestCompareRuns:
         assert exit_.value.code == 2 and "share no pose" in capsys.readouterr().err
         assert not output.exists()
 
+
+class TestQualityFit:
+    def test_the_shipped_model_and_its_page_are_the_committed_registrations_fitted(self, tmp_path):
+        from dpcn_med.quality import shipped_model
+
+        output = tmp_path / "quality.md"
+        csv_path = ROOT / "docs" / "benchmarks" / "quality" / "registrations.csv"
+        assert script("quality_fit").main([str(csv_path), "--output", str(output)]) == 0
+        committed = (ROOT / "docs" / "benchmarks" / "quality.md").read_text()
+        assert output.read_text().split("![reliability]")[1] == committed.split("![reliability]")[1]
+        shipped = shipped_model()
+        assert f"threshold {shipped.threshold:.3f}," in committed and output.with_suffix(".png").is_file()
+
+    def test_the_threshold_sits_midway_between_the_classes(self):
+        choose = script("quality_fit").choose_threshold
+        p = np.array([0.05, 0.2, 0.8, 0.95])
+        ok = np.array([False, False, True, True])
+        assert choose(p, ok, 0.0) == pytest.approx(0.5)  # log-odds midway between 0.2 and 0.8
+        assert choose(np.array([0.9, 0.95]), np.array([True, True]), 0.0) == 0.9  # no failure below: the lowest success

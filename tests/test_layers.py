@@ -32,6 +32,7 @@ LAYERS: dict[str, int] = {
     "dpcn_med.local_search": 4,
     "dpcn_med.options": 4,
     "dpcn_med.result": 4,
+    "dpcn_med.quality": 4,
     "dpcn_med.samples": 4,
     "dpcn_med.render": 4,
     # 3: from an image to a solver grid, and the measures of a pose.
