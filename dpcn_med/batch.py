@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 PAIR_COLUMNS = ("id", "fixed", "moving", "fixed_mask", "moving_mask")
 """The columns of a pairs file; fixed and moving are required."""
 
-SUMMARY_COLUMNS = ("id", "status", "confidence", "rotation_deg", "seconds", "message")
+SUMMARY_COLUMNS = ("id", "status", "success_probability", "confidence", "rotation_deg", "seconds", "message")
 """The columns of summary.csv."""
 
 FAILED = ("bad input", "internal error")
@@ -220,19 +220,21 @@ def _split_series_folder(path: str) -> str:
 
 def report_row(pair_id: str, report: dict, status: str, message: str = "") -> dict[str, str]:
     """A summary row of a finished registration's report."""
+    probability = report.get("success_probability")
     return {"id": pair_id, "status": status, "confidence": f"{report['confidence']:.4f}",
+            "success_probability": "" if probability is None else f"{probability:.3f}",
             "rotation_deg": f"{report['final']['rotation_degrees']:.1f}",
             "seconds": f"{report['timings_s']['total']:.1f}", "message": message}
 
 
 def error_row(pair_id: str, status: str, message: str) -> dict[str, str]:
     """A summary row of a pair that failed (``bad input`` or ``internal error``)."""
-    return {"id": pair_id, "status": status, "confidence": "", "rotation_deg": "", "seconds": "", "message": message}
+    return {"id": pair_id, "status": status, "success_probability": "", "confidence": "", "rotation_deg": "", "seconds": "", "message": message}
 
 
 def earlier_row(job: PairJob, settings: RegistrationSettings) -> dict[str, str]:
     """The summary row of a pair an earlier run answered."""
-    low = settings.low_confidence(job.earlier["confidence"])
+    low = settings.flagged(job.earlier)
     return report_row(job.id, job.earlier, "done earlier" + (", low confidence" if low else ""))
 
 
@@ -252,7 +254,7 @@ def register_job(job: PairJob, settings: RegistrationSettings, *, model: str | d
         return error_row(job.id, "bad input", str(error)), None
     except Exception as error:  # one broken pair must not stop a cohort; it is reported and counted
         return error_row(job.id, "internal error", f"{type(error).__name__}: {error}"), error
-    status = "low confidence" if settings.low_confidence(report["confidence"]) else "ok"
+    status = "low confidence" if settings.flagged(report) else "ok"
     return report_row(job.id, report, status, job.note), None
 
 

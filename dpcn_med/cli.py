@@ -1,7 +1,8 @@
 """``dpcn-med``: register volumes from the command line (thin over :mod:`dpcn_med.outputs` and :mod:`dpcn_med.batch`).
 
 Exit codes: 0 success; 2 bad input (one line on stderr naming the file and the problem, nothing written); 3 result
-written but the solver's confidence is below ``--min-confidence``; 130 interrupted (Ctrl-C or SIGTERM), nothing written
+written but flagged as likely wrong (its success probability below ``--min-probability``, or with ``--no-refine`` the
+solver's confidence below ``--min-confidence``); 130 interrupted (Ctrl-C or SIGTERM), nothing written
 for the unfinished pair; 1 internal error.
 """
 
@@ -55,8 +56,12 @@ def _registration_options() -> argparse.ArgumentParser:
     options.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:N")
     options.add_argument("--fixed-modality", default="auto", choices=MODALITIES)
     options.add_argument("--moving-modality", default="auto", choices=MODALITIES)
+    options.add_argument("--min-probability", type=_probability, default=None,
+                         help="exit with code 3 when the result's success probability (the quality model's, from "
+                         "the refined result) is below this (default: the model's threshold)")
     options.add_argument("--min-confidence", type=_finite_float, default=MIN_CONFIDENCE,
-                         help=f"exit with code 3 below this solver confidence (default {MIN_CONFIDENCE})")
+                         help="with --no-refine (no success probability): exit with code 3 below this solver "
+                         f"confidence (default {MIN_CONFIDENCE})")
     options.add_argument("--no-overview", dest="overview", action="store_false",
                          help="do not draw overview.png (saves about a second: matplotlib's import and the drawing)")
     options.add_argument("--no-resampled", dest="resampled", action="store_false",
@@ -177,6 +182,13 @@ def _finite_float(text: str) -> float:
     return value
 
 
+def _probability(text: str) -> float:
+    value = _finite_float(text)
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a probability in [0, 1]")
+    return value
+
+
 def count_type(minimum: int = 1) -> Callable[[str], int]:
     """An argparse type for a count (steps, poses, trials) or a seed: a whole number of at least ``minimum``, so that a
     mistyped 0 or -1 stops at the command line instead of failing after the data are loaded."""
@@ -203,6 +215,7 @@ def _settings(args: argparse.Namespace) -> RegistrationSettings:
     return RegistrationSettings(mode=args.mode, model=args.model, bandwidth=args.bandwidth, refine=args.refine,
                                 device=args.device, fixed_modality=args.fixed_modality,
                                 moving_modality=args.moving_modality, min_confidence=args.min_confidence,
+                                min_probability=args.min_probability,
                                 resampled=args.resampled, overview=args.overview)
 
 
@@ -210,8 +223,23 @@ def _summary_line(report: dict) -> str:
     final = report["final"]
     shift = ", ".join(f"{v:.1f}" for v in final["translation_mm"])
     start = ", refined from the stored pose" if report["start"] == "stored pose" else ""
+    probability = report.get("success_probability")
+    quality = "" if probability is None else f"success probability {probability:.0%}, "
     return (f"rotation {final['rotation_degrees']:.1f} deg, scale {final['scale']:.4f}, translation ({shift}) mm, "
-            f"confidence {report['confidence']:.3f}{start}, {report['timings_s']['total']:.1f} s")
+            f"{quality}confidence {report['confidence']:.3f}{start}, {report['timings_s']['total']:.1f} s")
+
+
+def _flag_message(report: dict, settings: RegistrationSettings, look: str) -> str:
+    """The warning for a flagged result: the number that flagged it, what it measures, and what to look at."""
+    probability = report.get("success_probability")
+    if probability is None:
+        return (f"dpcn-med: warning: confidence {report['confidence']:.4f} is below {settings.min_confidence}; the "
+                f"result is written but may be wrong: {look}")
+    return (f"dpcn-med: warning: the result is likely wrong: its success probability is {probability:.0%}, below "
+            f"{settings.probability_threshold:.0%} (the images agree little at the result, "
+            f"{report['overlap_fraction']:.0%} of the fixed foreground overlaps the moving volume). It is written: "
+            f"{look}. Check that both volumes show the same anatomy, that enough of it is in both, and that neither "
+            "header is flipped left to right")
 
 
 def _register(args: argparse.Namespace) -> int:
@@ -227,11 +255,10 @@ def _register(args: argparse.Namespace) -> int:
             for stage, seconds in report["timings_s"].items():
                 print(f"  {stage:<28s}{seconds * 1000:10.1f} ms")
         print(f"outputs in {args.output}/: {', '.join(report['outputs'])}")
-    if settings.low_confidence(report["confidence"]):
+    if settings.flagged(report):
         look = (f"look at {args.output / 'overview.png'}" if args.overview
                 else "check it (rerun without --no-overview for overview.png)")
-        print(f"dpcn-med: warning: confidence {report['confidence']:.4f} is below {args.min_confidence}; the result "
-              f"is written but may be wrong: {look}", file=sys.stderr)
+        print(_flag_message(report, settings, look), file=sys.stderr)
         return EXIT_LOW_CONFIDENCE
     return EXIT_OK
 

@@ -79,8 +79,8 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return cli.EXIT_INTERNAL
     if code == cli.EXIT_LOW_CONFIDENCE:  # the demo knows the truth, which a user's registration does not
-        print(f"the solver's confidence was below --min-confidence (so dpcn-med register exited {code} and warned), "
-              f"yet the result is {error:.2f} mm from the truth: the threshold errs on the side of warning")
+        print(f"dpcn-med register flagged the result as likely wrong (exit code {code}), yet it is {error:.2f} mm from "
+              "the truth: a false alarm of the quality model (docs/benchmarks/quality.md)")
     return cli.EXIT_OK
 
 

@@ -46,7 +46,10 @@ class RegistrationSettings:
         refine: run the local Mattes mutual-information refinement.
         device: ``"auto"``, ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
         fixed_modality, moving_modality: ``"auto"``, ``"ct"``, ``"mr"`` or ``"us"``.
-        min_confidence: results below this solver confidence are flagged (NaN is never confident).
+        min_confidence: without refinement (no success probability), results below this solver confidence are
+            flagged (NaN is never confident).
+        min_probability: results whose success probability (:mod:`dpcn_med.quality`) is below this are flagged;
+            ``None``: the quality model's own threshold.
         resampled: write ``moving_resampled.nii.gz``.
         overview: draw ``overview.png``.
     """
@@ -59,6 +62,7 @@ class RegistrationSettings:
     fixed_modality: str = "auto"
     moving_modality: str = "auto"
     min_confidence: float = MIN_CONFIDENCE
+    min_probability: float | None = None
     resampled: bool = True
     overview: bool = True
 
@@ -68,9 +72,21 @@ class RegistrationSettings:
         skipped = {"moving_resampled.nii.gz": not self.resampled, "overview.png": not self.overview}
         return tuple(name for name in OUTPUT_NAMES if not skipped.get(name, False))
 
-    def low_confidence(self, confidence: float) -> bool:
-        """Whether ``confidence`` is below :attr:`min_confidence` (a NaN is never confident)."""
-        return not confidence >= self.min_confidence
+    @property
+    def probability_threshold(self) -> float:
+        """:attr:`min_probability`, or the shipped quality model's threshold."""
+        from dpcn_med.quality import shipped_model
+
+        return self.min_probability if self.min_probability is not None else shipped_model().threshold
+
+    def flagged(self, report: dict) -> bool:
+        """Whether a registration's ``report`` (report.json's content) is flagged as likely wrong: its
+        ``success_probability`` below :attr:`probability_threshold`, or, where it has none (no refinement, or a
+        report of an older dpcn_med), its ``confidence`` below :attr:`min_confidence` (NaN is never confident)."""
+        probability = report.get("success_probability")
+        if probability is not None:
+            return not probability >= self.probability_threshold
+        return not report["confidence"] >= self.min_confidence
 
 
 def check_output_folder(output: Path) -> None:
@@ -208,7 +224,7 @@ def register_to_folder(fixed: str, moving: str, output: Path, *, settings: Regis
                       fixed_modality=settings.fixed_modality, moving_modality=settings.moving_modality,
                       resample=settings.resampled, progress=progress)
     report = registration_report(result, fixed=fixed, moving=moving, fixed_mask=fixed_mask, moving_mask=moving_mask,
-                                 min_confidence=settings.min_confidence, outputs=list(settings.outputs))
+                                 settings=settings, outputs=list(settings.outputs))
     report["timings_s"] = {**report["timings_s"], "total": time.perf_counter() - started}  # not result.timings
     report["request"] = registration_request(fixed, moving, fixed_mask=fixed_mask, moving_mask=moving_mask,
                                              settings=settings, bandwidth=result.bandwidth, model=model)
@@ -238,9 +254,16 @@ def _write_files(staging: Path, result, report: dict, settings: RegistrationSett
         from dpcn_med.report import overview_figure
 
         overview_figure(result.fixed_image, result.moving_image, result.fixed_to_moving, staging / "overview.png",
-                        title=f"{title}: confidence {result.confidence:.3f}, overlap {result.overlap:.0%}",
+                        title=f"{title}: {_quality_text(result)}, overlap {result.overlap:.0%}",
                         centre=result.fixed_grid.centre)  # the fixed foreground centre, already found
     io.write_json(report, staging / "report.json")
+
+
+def _quality_text(result) -> str:
+    """``success probability P%`` where the result has one, else ``confidence C``."""
+    if result.success_probability is not None:
+        return f"success probability {result.success_probability:.0%}"
+    return f"confidence {result.confidence:.3f}"
 
 
 def _write_staged(output: Path, begun: float, outputs: tuple[str, ...], write: Callable[[Path], None]) -> None:

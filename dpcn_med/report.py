@@ -21,6 +21,7 @@ from dpcn_med.preprocess import foreground_box, foreground_mask, histogram_value
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
+    from dpcn_med.outputs import RegistrationSettings
     from dpcn_med.registration import RegistrationResult
 
 PLANE_AXES: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
@@ -54,7 +55,7 @@ centre (why: docs/design_notes/report.md)."""
 
 def registration_report(result: RegistrationResult, *, fixed: str | os.PathLike | sitk.Image,
                         moving: str | os.PathLike | sitk.Image, fixed_mask: str | os.PathLike | None = None,
-                        moving_mask: str | os.PathLike | None = None, min_confidence: float,
+                        moving_mask: str | os.PathLike | None = None, settings: RegistrationSettings,
                         outputs: Sequence[str] = ()) -> dict:
     """The content of ``report.json``: inputs and their geometry, both estimates, confidence and its verdict, metric
     values, timings, the Slicer to-parent RAS matrix, versions and conventions (JSON-ready)."""
@@ -69,9 +70,11 @@ def registration_report(result: RegistrationResult, *, fixed: str | os.PathLike 
                          pixel_type=image.GetPixelIDTypeAsString())
         return entry
 
+    verdict = {"confidence": result.confidence, "success_probability": result.success_probability}
     return {
-        "status": "ok" if result.confidence >= min_confidence else "low confidence",
-        "min_confidence": min_confidence,
+        "status": "low confidence" if settings.flagged(verdict) else "ok",
+        "min_confidence": settings.min_confidence,
+        "min_success_probability": settings.probability_threshold,
         "inputs": {"fixed": described(fixed, result.fixed_image), "moving": described(moving, result.moving_image),
                    "fixed_mask": None if fixed_mask is None else str(fixed_mask),
                    "moving_mask": None if moving_mask is None else str(moving_mask)},

@@ -85,7 +85,7 @@ class TestRegister:
     def test_report(self, registered, pair):
         report = json.loads((registered[0] / "report.json").read_text())
         assert report["inputs"]["fixed"]["path"] == str(pair[0])
-        assert report["status"] == "ok" and report["confidence"] >= report["min_confidence"]
+        assert report["status"] == "ok" and report["success_probability"] >= report["min_success_probability"]
         assert report["dpc"]["type"] == report["final"]["type"] == "VersorRigid3DTransform"
         assert report["start"] == "phase correlation"  # the copy was moved far from the stored pose
         assert report["mattes_mutual_information"]["refined"] <= report["mattes_mutual_information"]["dpc"]
@@ -370,6 +370,36 @@ class TestLowConfidence:
         assert main(["register", str(pair[0]), str(tmp_path / "noise.nii.gz"), "-o", str(lean), "--no-refine",
                      "--no-overview"]) == 3
         assert "rerun without --no-overview" in capsys.readouterr().err and not (lean / "overview.png").exists()
+
+
+class TestQualityFlag:
+    def test_a_head_against_noise_exits_3_and_says_what_to_check(self, pair, tmp_path, capsys):
+        rng = np.random.default_rng(0)
+        noise = sitk.SmoothingRecursiveGaussian(
+            sitk.GetImageFromArray((rng.random((40, 48, 36)) * 100).astype(np.float32)), 2.0)
+        noise.SetSpacing((3.0, 3.0, 3.0))
+        sitk.WriteImage(noise, str(tmp_path / "noise.nii.gz"))
+        output = tmp_path / "out"
+        code = main(["register", str(pair[0]), str(tmp_path / "noise.nii.gz"), "-o", str(output), "--no-overview"])
+        err = capsys.readouterr().err
+        assert code == 3 and "likely wrong" in err and "same anatomy" in err and "flipped left to right" in err
+        report = json.loads((output / "report.json").read_text())
+        assert report["status"] == "low confidence"
+        assert report["success_probability"] < report["min_success_probability"]
+
+    def test_min_probability_overrides_the_models_threshold(self, registered, pair, tmp_path, capsys):
+        probability = json.loads((registered[0] / "report.json").read_text())["success_probability"]
+        assert probability < 1
+        code = main(["register", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "o"), "--no-overview",
+                     "--no-resampled", "--min-probability", "1"])
+        assert code == 3 and "below 100%" in capsys.readouterr().err
+
+    @pytest.mark.parametrize("value", ["1.5", "-0.1", "nan"])
+    def test_min_probability_is_a_probability(self, pair, tmp_path, capsys, value):
+        with pytest.raises(SystemExit) as exit_:
+            main(["register", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "o"), "--min-probability", value])
+        assert exit_.value.code == 2 and "--min-probability" in capsys.readouterr().err
+        assert not (tmp_path / "o").exists()
 
 
 class TestProgress:

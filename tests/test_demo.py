@@ -10,7 +10,9 @@ from dpcn_med.demo import main
 
 def test_demo_registers_the_built_in_pair_and_says_where(tmp_path, capsys):
     assert main(["--output", str(tmp_path)]) == 0
-    output = capsys.readouterr().out
+    captured = capsys.readouterr()
+    output = captured.out
+    assert "warning" not in captured.err and "false alarm" not in output, captured.err  # a right result, unflagged
     error = re.search(r"target registration error against the truth: ([\d.]+) mm after refinement", output)
     assert error, output
     assert float(error.group(1)) < 1.0

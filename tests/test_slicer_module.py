@@ -475,6 +475,7 @@ class TestRegistration:
                                   progress=lambda stage, fraction: stages.append((stage, fraction)))
 
         assert not result.low_confidence and result.confidence > 0.5 and result.overlap == 1.0
+        assert result.success_probability == result.report["success_probability"] > 0.9
         assert stages[-1] == ("done", 1.0) and "solving" in {s for s, _ in stages}
         assert moving.GetParentTransformNode().GetID() == result.transform.GetID()
         assert result.transform.GetParentTransformNode().GetID() == base.GetID()

@@ -193,13 +193,15 @@ class DPCNRegistrationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def _showResult(self, result: Result) -> None:
         self._parameterNode.outputTransform = result.transform
-        text = (f"Confidence {result.confidence:.3f}, {result.overlap:.0%} of the fixed volume overlapped "
-                f"({result.seconds:.1f} s).")
+        quality = (f"Success probability {result.success_probability:.0%} (confidence {result.confidence:.3f})"
+                   if result.success_probability is not None else f"Confidence {result.confidence:.3f}")
+        text = f"{quality}, {result.overlap:.0%} of the fixed volume overlapped ({result.seconds:.1f} s)."
         if result.low_confidence:
-            text += " Low: the result may be wrong; check the alignment in the views before using it."
+            text += " Likely wrong: check the alignment in the views before using it."
             self.ui.confidenceLabel.setStyleSheet("color: #c0392b")
-            slicer.util.warningDisplay(f"The registration's confidence is low ({result.confidence:.4f}); check the "
-                                       "alignment before using it.", windowTitle="DPCN Registration")
+            slicer.util.warningDisplay(f"The registration is likely wrong ({quality.lower()}). Check the alignment "
+                                       "before using it, that both volumes show the same anatomy, and that neither "
+                                       "header is flipped left to right.", windowTitle="DPCN Registration")
         else:
             self.ui.confidenceLabel.setStyleSheet("")
         self.ui.confidenceLabel.text = text

@@ -50,12 +50,14 @@ class Result:
     """``vtkMRMLScalarVolumeNode`` with the moving volume resampled onto the fixed grid, when one was asked for."""
     confidence: float
     low_confidence: bool
-    """dpcn-med wrote the result but its confidence is under its threshold: look before trusting it."""
+    """dpcn-med wrote the result but flagged it as likely wrong (exit code 3): look before trusting it."""
     overlap: float
     """Share of the fixed foreground that the result maps inside the moving volume's field of view."""
     report: dict = field(repr=False)
     """dpcn-med's report.json."""
     seconds: float = 0.0
+    success_probability: float | None = None
+    """How likely the result is right, by dpcn-med's quality model (``None`` without refinement)."""
 
 
 class Registration:
@@ -194,7 +196,8 @@ class Registration:
         return Result(transform=transform, volume=self.output_volume, confidence=float(report["confidence"]),
                       low_confidence=self.job.returncode == process.EXIT_LOW_CONFIDENCE,
                       overlap=float(report["overlap_fraction"]), report=report,
-                      seconds=time.perf_counter() - self.started)
+                      seconds=time.perf_counter() - self.started,
+                      success_probability=_optional_number(report.get("success_probability")))
 
     def _check_unmoved(self) -> None:
         """Raise :class:`RegistrationError` unless the moving volume still hangs under its base (or the output) and
@@ -242,6 +245,11 @@ def register_volumes(fixed, moving, options: Options | None = None, *, fixed_mas
 OLDER_DPCN_MED = "the dpcn_med in Slicer's Python is older than this module; reinstall it"
 REPORT_NUMBERS = ("confidence", "overlap_fraction")
 """report.json's values :class:`Result` shows; a dpcn_med too old to write them is refused before the scene changes."""
+
+
+def _optional_number(value) -> float | None:
+    """A report's optional number: ``None`` where it is absent or not a number."""
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
 
 
 def _require(path: Path) -> None:
