@@ -21,6 +21,7 @@ from dpcn_med import __version__
 from dpcn_med.cli import OUTPUT_NAMES, main
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.preprocess import foreground_box
+from tests.conftest import shared_path
 from tests.test_registration import coronal_slab, mni_2mm
 
 
@@ -386,6 +387,14 @@ class TestQualityFlag:
         report = json.loads((output / "report.json").read_text())
         assert report["status"] == "low confidence"
         assert report["success_probability"] < report["min_success_probability"]
+
+    def test_a_head_against_a_phantom_exits_3(self, tmp_path, capsys):
+        """A wrong body part: the seg3d head MR against the MRI-DIR porcine phantom's CT (real volumes)."""
+        head, phantom = shared_path("seg3d/MR.nii.gz"), shared_path("mridir/mridir_ct_3p0mm.nii.gz")
+        output = tmp_path / "out"
+        assert main(["register", str(head), str(phantom), "-o", str(output), "--no-overview", "--no-resampled"]) == 3
+        assert "likely wrong" in capsys.readouterr().err
+        assert json.loads((output / "report.json").read_text())["success_probability"] < 0.5
 
     def test_min_probability_overrides_the_models_threshold(self, registered, pair, tmp_path, capsys):
         probability = json.loads((registered[0] / "report.json").read_text())["success_probability"]
