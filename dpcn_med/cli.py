@@ -235,11 +235,17 @@ def _flag_message(report: dict, settings: RegistrationSettings, look: str) -> st
     if probability is None:
         return (f"dpcn-med: warning: confidence {report['confidence']:.4f} is below {settings.min_confidence}; the "
                 f"result is written but may be wrong: {look}")
-    return (f"dpcn-med: warning: the result is likely wrong: its success probability is {probability:.0%}, below "
-            f"{settings.probability_threshold:.0%} (the images agree little at the result, "
-            f"{report['overlap_fraction']:.0%} of the fixed foreground overlaps the moving volume). It is written: "
-            f"{look}. Check that both volumes show the same anatomy, that enough of it is in both, and that neither "
-            "header is flipped left to right")
+    message = (f"dpcn-med: warning: the result is likely wrong: its success probability is {probability:.0%}, below "
+               f"{settings.probability_threshold:.0%} (the images agree little at the result, "
+               f"{report['overlap_fraction']:.0%} of the fixed foreground overlaps the moving volume). It is written: "
+               f"{look}. ")
+    mirrored = report.get("mirrored") or {}
+    if mirrored.get("likely"):
+        return message + (f"The moving volume looks mirrored: flipped left to right it registers with success "
+                          f"probability {mirrored['success_probability']:.0%}. Check its header's orientation "
+                          "(a left-right flip); the result written is of the volume as it is")
+    return message + ("Check that both volumes show the same anatomy, that enough of it is in both, and that neither "
+                      "header is flipped left to right")
 
 
 def _register(args: argparse.Namespace) -> int:

@@ -50,6 +50,9 @@ class RegistrationSettings:
             flagged (NaN is never confident).
         min_probability: results whose success probability (:mod:`dpcn_med.quality`) is below this are flagged;
             ``None``: the quality model's own threshold.
+        mirror_check: register a flagged result's moving volume again mirrored left to right, and report whether
+            that registers (report.json's ``mirrored``): a flipped header. About one more registration's time, on
+            flagged results only.
         resampled: write ``moving_resampled.nii.gz``.
         overview: draw ``overview.png``.
     """
@@ -63,6 +66,7 @@ class RegistrationSettings:
     moving_modality: str = "auto"
     min_confidence: float = MIN_CONFIDENCE
     min_probability: float | None = None
+    mirror_check: bool = True
     resampled: bool = True
     overview: bool = True
 
@@ -225,12 +229,34 @@ def register_to_folder(fixed: str, moving: str, output: Path, *, settings: Regis
                       resample=settings.resampled, progress=progress)
     report = registration_report(result, fixed=fixed, moving=moving, fixed_mask=fixed_mask, moving_mask=moving_mask,
                                  settings=settings, outputs=list(settings.outputs))
+    if settings.mirror_check and result.success_probability is not None and settings.flagged(report):
+        report["mirrored"] = check_mirrored(result, settings, fixed_mask, moving_mask)
     report["timings_s"] = {**report["timings_s"], "total": time.perf_counter() - started}  # not result.timings
     report["request"] = registration_request(fixed, moving, fixed_mask=fixed_mask, moving_mask=moving_mask,
                                              settings=settings, bandwidth=result.bandwidth, model=model)
     _write_staged(output, begun, settings.outputs, lambda staging: _write_files(
         staging, result, report, settings, title=f"{Path(moving).name} onto {Path(fixed).name}"))
     return report
+
+
+def check_mirrored(result, settings: RegistrationSettings, fixed_mask: str | None, moving_mask: str | None) -> dict:
+    """A flagged result's second look: the moving volume mirrored left to right (:func:`mirrored_copy`) and
+    registered again with the same settings. ``{"success_probability": p, "likely": p >= threshold}``: ``likely``
+    where the mirrored copy registers as a success would, the sign of a flipped header."""
+    from dpcn_med.registration import mirrored_copy, register
+
+    try:
+        moving_mask_image = None if moving_mask is None else mirrored_copy(
+            io.read_mask(moving_mask, result.moving_image, role="moving mask"))
+        mirrored = register(result.fixed_image, mirrored_copy(result.moving_image), mode=settings.mode,
+                            model=settings.model, bandwidth=settings.bandwidth, device=settings.device,
+                            fixed_mask=fixed_mask, moving_mask=moving_mask_image,
+                            fixed_modality=settings.fixed_modality, moving_modality=settings.moving_modality)
+    except InputError as error:  # the result stands; the second look could not be taken
+        return {"success_probability": None, "likely": False, "error": str(error)}
+    probability = mirrored.success_probability
+    return {"success_probability": probability,
+            "likely": probability is not None and probability >= settings.probability_threshold}
 
 
 def _check_targets(output: Path, inputs: dict[str, str]) -> None:

@@ -446,6 +446,18 @@ def stored_pose_confidence(fixed: torch.Tensor, moving: torch.Tensor, network: D
     return float(estimate.peak.mass[0])
 
 
+def mirrored_copy(image: sitk.Image) -> sitk.Image:
+    """``image`` with its voxels reversed along the voxel axis nearest the patient's left-right (LPS x) axis and its
+    header kept: what a left-right header error does to a volume, and what undoes one."""
+    direction = np.asarray(image.GetDirection()).reshape(3, 3)
+    axis = int(np.argmax(np.abs(direction[0])))  # the voxel axis whose direction has the largest x component
+    flip = [False, False, False]
+    flip[axis] = True
+    mirrored = sitk.Flip(image, flip, flipAboutOrigin=False)
+    mirrored.CopyInformation(image)
+    return mirrored
+
+
 def field_of_view_overlap(fixed_foreground: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform, *,
                           samples: int = 20000, seed: int = 0) -> float:
     """Share of the fixed foreground whose points ``fixed_to_moving`` sends inside the moving image's domain.

@@ -396,6 +396,30 @@ class TestQualityFlag:
         assert "likely wrong" in capsys.readouterr().err
         assert json.loads((output / "report.json").read_text())["success_probability"] < 0.5
 
+    def test_a_mirrored_moving_volume_is_named(self, tmp_path, capsys):
+        """The stroke FLAIR with its voxels flipped left to right (the header kept), moved, against the T1: flagged,
+        and the mirror check says so."""
+        from dpcn_med.registration import mirrored_copy
+
+        fixed, flair = shared_path("stroke/T1.nii.gz"), sitk.ReadImage(str(shared_path("stroke/FLAIR.nii.gz")))
+        truth = random_similarity(np.random.default_rng(3), foreground_box(flair)[0], max_shift_mm=30.0)
+        sitk.WriteImage(moved_copy(mirrored_copy(flair), truth), str(tmp_path / "flair.nii.gz"))
+        output = tmp_path / "out"
+        assert main(["register", str(fixed), str(tmp_path / "flair.nii.gz"), "-o", str(output), "--no-overview",
+                     "--no-resampled"]) == 3
+        assert "looks mirrored" in capsys.readouterr().err
+        assert json.loads((output / "report.json").read_text())["mirrored"]["likely"] is True
+
+    def test_mirrored_copy_flips_the_voxels_nearest_left_right(self):
+        image = sitk.GetImageFromArray(np.arange(24, dtype=np.float32).reshape(2, 3, 4))
+        image.SetDirection((0, 1, 0, 1, 0, 0, 0, 0, 1))  # voxel axis 1 (y) runs along LPS x
+        image.SetOrigin((5.0, -2.0, 1.0))
+        from dpcn_med.registration import mirrored_copy
+
+        mirrored = mirrored_copy(image)
+        assert mirrored.GetDirection() == image.GetDirection() and mirrored.GetOrigin() == image.GetOrigin()
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(mirrored), sitk.GetArrayFromImage(image)[:, ::-1, :])
+
     def test_min_probability_overrides_the_models_threshold(self, registered, pair, tmp_path, capsys):
         probability = json.loads((registered[0] / "report.json").read_text())["success_probability"]
         assert probability < 1

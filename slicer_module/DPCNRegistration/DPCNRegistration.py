@@ -199,9 +199,13 @@ class DPCNRegistrationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         if result.low_confidence:
             text += " Likely wrong: check the alignment in the views before using it."
             self.ui.confidenceLabel.setStyleSheet("color: #c0392b")
-            slicer.util.warningDisplay(f"The registration is likely wrong ({quality.lower()}). Check the alignment "
-                                       "before using it, that both volumes show the same anatomy, and that neither "
-                                       "header is flipped left to right.", windowTitle="DPCN Registration")
+            mirrored = result.report.get("mirrored") or {}
+            advice = ("The moving volume looks mirrored (flipped left to right it registers with success probability "
+                      f"{mirrored.get('success_probability', 0):.0%}): check its header's orientation."
+                      if mirrored.get("likely") else "Check the alignment before using it, that both volumes show "
+                      "the same anatomy, and that neither header is flipped left to right.")
+            slicer.util.warningDisplay(f"The registration is likely wrong ({quality.lower()}). {advice}",
+                                       windowTitle="DPCN Registration")
         else:
             self.ui.confidenceLabel.setStyleSheet("")
         self.ui.confidenceLabel.text = text
