@@ -22,14 +22,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
 
-from dpcn_med.benchmark import CASES, rotation_in_bin
+from dpcn_med.benchmark import CASES, SUCCESS_MM, rotation_in_bin
 from dpcn_med.benchmark.methods import exhaustive_search
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
 from dpcn_med.preprocess import foreground_box
 from dpcn_med.registration import register
 
 ROOT = Path(__file__).resolve().parents[1]
-SUCCESS_MM = 2.0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -2,12 +2,12 @@
 
 Collect (``--collect``): register pairs whose right answer is known (whole volumes and slabs, same modality,
 cross-contrast and pseudo-CT to MR, from random poses) and deliberate failures where none exists (a head against a
-pelvis phantom, against a volume of smoothed noise, and a slab against a part of the head it does not contain), and
+porcine phantom, against a volume of smoothed noise, and a slab against a part of the head it does not contain), and
 write each registration's :func:`dpcn_med.quality.signals` inputs and its TRE to a CSV. Mirrored heads (a left-right
 header flip) are registered too and reported apart: no rigid answer is right, yet a head is nearly symmetric.
 
-Fit (the default): fit the logistic model on the ``fit`` pairs, choose the threshold there (the highest one that
-flags at most ``--max-flagged-successes`` of the successes), and check both on the ``check`` pairs, which share no
+Fit (the default): fit the logistic model on the ``fit`` pairs, choose the threshold there (:func:`choose_threshold`:
+midway between the failures and the successes, flagging at most ``--max-flagged-successes`` of these), and check both on the ``check`` pairs, which share no
 pair with the fit: a calibration table by decile of probability, a reliability diagram, and the share of failures
 and successes flagged per group. Writes the model into the package (``dpcn_med/quality_model.json``) with
 ``--write-model``.
@@ -20,6 +20,7 @@ and successes flagged per group. Writes the model into the package (``dpcn_med/q
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -40,6 +41,7 @@ from dpcn_med.evaluation import foreground_corners, moved_copy, target_registrat
 from dpcn_med.io import write_csv
 from dpcn_med.preprocess import foreground_box, foreground_mask
 from dpcn_med.quality import QualityModel, fit, signals
+from dpcn_med.registration import mirrored_copy
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -88,13 +90,6 @@ def _part(image: sitk.Image, low: float, high: float, axis: int = 2) -> sitk.Ima
     return sitk.RegionOfInterest(image, size, index)
 
 
-def _mirrored(image: sitk.Image) -> sitk.Image:
-    """``image`` with its voxels flipped along the first axis and its header kept: a left-right header error."""
-    flipped = sitk.GetImageFromArray(sitk.GetArrayFromImage(image)[:, :, ::-1].copy())
-    flipped.CopyInformation(image)
-    return flipped
-
-
 def _slab(image: sitk.Image, fraction: float, rng: np.random.Generator) -> sitk.Image:
     """A slab keeping ``fraction`` of the foreground's extent along a random voxel axis, at a random place."""
     axis = int(rng.integers(3))
@@ -133,10 +128,10 @@ def cases() -> list[Case]:
         ("check", "deliberate", "seg3d T1 to smoothed noise (unrelated)", lambda: (seg3d_mr(), _noise_volume(2)), None),
         ("check", "deliberate", "stroke T1 top 30% to its FLAIR's lower 40% (no anatomy in common)",
          lambda: (_part(_read("stroke/T1.nii.gz"), 0.7, 1.0), _part(_read("stroke/FLAIR.nii.gz"), 0.0, 0.4)), None),
-        ("check", "mirrored", "seg3d T1 to its mirrored pseudo-CT", lambda: (lambda f, m: (f, _mirrored(m)))(
+        ("check", "mirrored", "seg3d T1 to its mirrored pseudo-CT", lambda: (lambda f, m: (f, mirrored_copy(m)))(
             *case_images("pseudo-ct")[::-1]), None),
         ("check", "mirrored", "stroke T1 to its mirrored FLAIR",
-         lambda: (_read("stroke/T1.nii.gz"), _mirrored(_read("stroke/FLAIR.nii.gz"))), None),
+         lambda: (_read("stroke/T1.nii.gz"), mirrored_copy(_read("stroke/FLAIR.nii.gz"))), None),
     ]
     return listed
 
@@ -215,8 +210,7 @@ def fitted_model(rows: list[dict], names: tuple[str, ...], penalty: float, max_f
                          threshold=0.5)
     probabilities = np.array([model.probability(row["signals"]) for row in rows])
     threshold = choose_threshold(probabilities, np.array([success(row) for row in rows]), max_flagged)
-    return QualityModel(names=names, mean=mean, scale=scale, coefficients=coefficients, intercept=intercept,
-                        threshold=threshold)
+    return dataclasses.replace(model, threshold=threshold)
 
 
 def held_out_pairs(rows: list[dict], penalty: float, max_flagged: float) -> str:
@@ -325,9 +319,9 @@ def main(argv: list[str] | None = None) -> int:
     training = [row for row in usable if row["split"] == "fit"]
     command = generated_by(__file__, argv)
     model = fitted_model(training, MODEL_SIGNALS, args.penalty, args.max_flagged_successes)
-    model = QualityModel(**{**model.__dict__, "fitted": {
+    model = dataclasses.replace(model, fitted={
         "by": command, "registrations": len(training), "successes": int(sum(success(row) for row in training)),
-        "penalty": args.penalty, "date": time.strftime("%Y-%m-%d")}})
+        "penalty": args.penalty, "date": time.strftime("%Y-%m-%d")})
     for row in usable:
         row["probability"] = model.probability(row["signals"])
     if args.write_model:
