@@ -18,13 +18,14 @@ from torch import Tensor, nn
 from dpcn_med import __version__
 from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequence, shown
 from dpcn_med.errors import InputError
-from dpcn_med.geometry import axis_angle_to_matrix, warp
+from dpcn_med.geometry import axis_angle_to_matrix, geodesic_distance, warp
 from dpcn_med.models.features import FeatureExtractor
 from dpcn_med.preprocess import MODALITIES as _INPUT_MODALITIES
 from dpcn_med.preprocess import Preprocessing
 from dpcn_med.solver import LossWeights, PoseTarget, SolverConfig, SolveResult, StageTemperatures, Temperatures, solve
 from dpcn_med.solver import pose_loss as solver_pose_loss
 from dpcn_med.solver.config import DEFAULT_BANDWIDTH
+from dpcn_med.solver.solve3d import candidate_scores
 from dpcn_med.solver.translation import TranslationEstimate, phase_translation
 from dpcn_med.solver.validation import check_grid_bandwidth, check_mode
 
@@ -170,6 +171,10 @@ class DPCNOutput:
         stage: the solver's rotation-scale result on the rotation-scale features.
         translation_estimate: the translation stage on the translation features.
         compensation: ``(B, 3, 3)`` the ``scale * rotation`` the moving volume was compensated by before it.
+        candidate_scores: ``(B, K)`` training with a target only: the translation peak of each of the solver's
+            ranked candidates on the translation features, differentiable (``-inf``: a candidate the solver dropped).
+        candidate_errors: ``(B, K)`` their angles to the true rotation, degrees (``inf`` where dropped).
+        ranking_temperature: the softmax temperature of the ranking loss over ``candidate_scores``.
     """
 
     rotation: Tensor
@@ -179,6 +184,14 @@ class DPCNOutput:
     stage: SolveResult
     translation_estimate: TranslationEstimate
     compensation: Tensor
+    candidate_scores: Tensor | None = None
+    candidate_errors: Tensor | None = None
+    ranking_temperature: Tensor | None = None
+
+
+RANKING_TEMPERATURE = 0.01
+"""Initial softmax temperature of the candidate ranking loss, in units of phase-correlation peak height (why this
+value: docs/design_notes/models.md)."""
 
 
 class DPCN(nn.Module):
@@ -197,6 +210,9 @@ class DPCN(nn.Module):
         else:
             self.rotation_moving, self.translation_moving = extractor(), extractor()
         self.temperatures = Temperatures(StageTemperatures(*config.temperatures))
+        # Only the ranking loss reads it (an arg-max does not depend on it), so it is a model parameter, not a stage
+        # temperature the solver takes.
+        self.ranking_temperature = nn.Parameter(torch.tensor(math.log(math.expm1(RANKING_TEMPERATURE))))
         self.solver = config.solver_config()
 
     def forward(self, fixed: Tensor, moving: Tensor, target: PoseTarget | None = None,
@@ -229,18 +245,43 @@ class DPCN(nn.Module):
         mode = check_mode(mode or self.config.mode)
         with torch.autocast(fixed.device.type, enabled=False):
             temperatures = self.temperatures()
+            # The candidates are ranked by their translation peak on the translation features, in training as at
+            # inference, so that the ranking loss trains the choice that registration makes.
+            fixed_translation = self._features("translation_fixed", fixed, amp)
+            moving_translation = self._features("translation_moving", moving, amp)
+            truth = self.training and target is not None
             stage = solve(self._features("rotation_fixed", fixed, amp), self._features("rotation_moving", moving, amp),
                           mode, config=self.solver, temperatures=temperatures, refine=not self.training,
-                          alternatives=alternatives)
-            if self.training and target is not None:
+                          alternatives=alternatives, score_volumes=(fixed_translation, moving_translation),
+                          scale_rotation=target.rotation if truth else None)
+            if truth:
                 compensation = self._noisy(target, generator, rigid=mode == "rigid").to(fixed.dtype)
             else:
                 compensation = (stage.scale[:, None, None] * stage.rotation).detach()
-            estimate = self.translation_peak(fixed, warp(moving, compensation), temperatures.translation, amp=amp)
+            estimate = phase_translation(fixed_translation[:, 0], self._features(
+                "translation_moving", warp(moving, compensation), amp)[:, 0], temperatures.translation, dim=3,
+                taper=self.solver.taper, refine=not self.training, upsample=self.solver.upsample)
             translation = (compensation @ estimate.shift[..., None])[..., 0]
+            scores = errors = None
+            if truth:
+                scores, errors = self._candidate_scores(stage, fixed_translation, moving_translation, target)
         return DPCNOutput(rotation=stage.rotation, scale=stage.scale, translation=translation,
                           confidence=estimate.peak.mass, stage=stage, translation_estimate=estimate,
-                          compensation=compensation)
+                          compensation=compensation, candidate_scores=scores, candidate_errors=errors,
+                          ranking_temperature=torch.nn.functional.softplus(self.ranking_temperature))
+
+    def _candidate_scores(self, stage: SolveResult, fixed: Tensor, moving: Tensor, target: PoseTarget
+                          ) -> tuple[Tensor, Tensor]:
+        """The solver's ranked candidates scored again with gradients, on the translation features ``fixed`` and
+        ``moving`` ``(B, 1, N, N, N)`` at the solver's ``candidate_size`` (as it scores them all), and their errors
+        in degrees: ``(B, K)`` each, ``-inf`` and ``inf`` where the solver dropped a candidate."""
+        ranking = stage.ranking
+        dropped = ranking.score == float("-inf")
+        linear = (ranking.scale[..., None, None] * ranking.rotation).detach()
+        scores = candidate_scores(fixed[:, 0], moving[:, 0], linear, self.solver.candidate_size, self.solver.taper)
+        errors = torch.rad2deg(geodesic_distance(ranking.rotation.detach().double(),
+                                                 target.rotation.double()[:, None])).to(scores.dtype)
+        return scores.masked_fill(dropped, float("-inf")), errors.masked_fill(dropped, float("inf"))
 
     def translation_peak(self, fixed: Tensor, moving: Tensor, temperature: Tensor | None = None, amp: bool = False
                          ) -> TranslationEstimate:
@@ -303,8 +344,29 @@ class DPCN(nn.Module):
         return scale[:, None, None] * (turn @ target.rotation.double())
 
 
+def ranking_loss(output: DPCNOutput, max_degrees: float) -> Tensor:
+    """Cross-entropy of the softmax over :attr:`DPCNOutput.candidate_scores` (at its ``ranking_temperature``) with
+    the candidate nearest the truth as the target: ``(B,)``, zero for a pair whose nearest candidate lies
+    ``max_degrees`` or more from the truth (no right answer among them to rank first)."""
+    nearest = output.candidate_errors.min(-1)
+    dropped = output.candidate_scores == float("-inf")
+    # Masked after the division: -inf / temperature has a NaN gradient with respect to the temperature.
+    logits = (output.candidate_scores.masked_fill(dropped, 0.0) / output.ranking_temperature).masked_fill(
+        dropped, float("-inf"))
+    loss = -torch.log_softmax(logits, -1).gather(1, nearest.indices[:, None])[:, 0]
+    return torch.where(nearest.values < max_degrees, loss, torch.zeros_like(loss))
+
+
 def pose_loss(output: DPCNOutput, target: PoseTarget, weights: LossWeights | None = None) -> dict[str, Tensor]:
     """The six DPCN++ terms (:func:`dpcn_med.solver.pose_loss`) with the translation terms on the model's own
-    translation stage; ``"total"`` is their weighted sum."""
-    return solver_pose_loss(output.stage, target, weights, translation=output.translation_estimate,
-                            compensation=output.compensation)
+    translation stage, and ``"candidate_ranking"`` (:func:`ranking_loss`, batch mean; zero outside training with a
+    target); ``"total"`` is their weighted sum."""
+    weights = weights or LossWeights()
+    terms = solver_pose_loss(output.stage, target, weights, translation=output.translation_estimate,
+                             compensation=output.compensation)
+    if output.candidate_scores is None:
+        terms["candidate_ranking"] = terms["total"].new_zeros(())
+    else:
+        terms["candidate_ranking"] = ranking_loss(output, weights.candidate_degrees).mean()
+        terms["total"] = terms["total"] + weights.candidate_ranking * terms["candidate_ranking"]
+    return terms

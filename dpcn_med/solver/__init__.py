@@ -18,7 +18,7 @@ module                 step
 from dpcn_med.solver.config import SolverConfig, StageTemperatures, Temperatures
 from dpcn_med.solver.losses import LossWeights, PoseTarget, pose_loss
 from dpcn_med.solver.solve2d import Solve2dResult, solve2d
-from dpcn_med.solver.solve3d import Alternatives, SolveResult, solve
+from dpcn_med.solver.solve3d import Alternatives, Ranking, SolveResult, solve
 
-__all__ = ["Alternatives", "LossWeights", "PoseTarget", "Solve2dResult", "SolveResult", "SolverConfig",
+__all__ = ["Alternatives", "LossWeights", "PoseTarget", "Ranking", "Solve2dResult", "SolveResult", "SolverConfig",
            "StageTemperatures", "Temperatures", "pose_loss", "solve", "solve2d"]

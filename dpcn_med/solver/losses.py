@@ -9,14 +9,15 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from dpcn_med.arguments import check_real, shown
+from dpcn_med.arguments import check_flag, check_real, shown
 from dpcn_med.errors import InputError
-from dpcn_med.geometry import geodesic_distance, grid_centre
+from dpcn_med.geometry import geodesic_distance, grid_centre, half_turns
 from dpcn_med.solver.so3 import euler_grid, grid_rotations
 from dpcn_med.solver.solve3d import SolveResult
 from dpcn_med.solver.translation import TranslationEstimate
 
-_WEIGHTS = ("rotation_kl", "rotation_l1", "translation_kl", "translation_l1", "scale_kl", "scale_l1")
+_WEIGHTS = ("rotation_kl", "rotation_l1", "translation_kl", "translation_l1", "scale_kl", "scale_l1",
+            "candidate_ranking")
 
 MIN_SIGMA = 1e-6
 """Least target width (radians or cells), far below a grid cell, where the target is one cell already (why this
@@ -25,12 +26,19 @@ value: docs/design_notes/solver.md)."""
 
 @dataclass(frozen=True)
 class LossWeights:
-    """Weights of the six terms; the defaults are the paper's ``{1, 3, 3, 1, 1, 3}``.
+    """Weights of the training terms; the six of the paper default to its ``{1, 3, 3, 1, 1, 3}``.
 
     Attributes:
         rotation_kl, rotation_l1, translation_kl, translation_l1, scale_kl, scale_l1: the weights.
+        candidate_ranking: weight of a learned model's candidate ranking loss
+            (:func:`dpcn_med.models.pose_loss`; the solver's own loss has no such term). 0 leaves it out.
         rotation_sigma: width in radians of the Gaussian target on SO(3).
+        rotation_twins: take the least of the rotation KLs to the true rotation and to each of its six half-turn
+            twins (the candidates the solver tries beside each peak), so that the KL does not penalise the twin that
+            a symmetric anatomy makes as likely; the candidate choice then tells them apart.
         shift_sigma: width in grid cells of the Gaussian targets of the translation and scale stages.
+        candidate_degrees: the ranking loss's target is the candidate nearest the truth when it lies within this many
+            degrees of it; pairs with none that near are left out of that term.
     """
 
     rotation_kl: float = 1.0
@@ -39,8 +47,11 @@ class LossWeights:
     translation_l1: float = 1.0
     scale_kl: float = 1.0
     scale_l1: float = 3.0
+    candidate_ranking: float = 0.0
     rotation_sigma: float = math.radians(5.0)
+    rotation_twins: bool = False
     shift_sigma: float = 1.0
+    candidate_degrees: float = 15.0
 
     def __post_init__(self) -> None:
         """Check that the weights are finite and >= 0 and the widths finite and >= :data:`MIN_SIGMA`; store numpy
@@ -53,6 +64,9 @@ class LossWeights:
             object.__setattr__(self, name, check_real(name, getattr(self, name), minimum=0.0))
         for name in ("rotation_sigma", "shift_sigma"):
             object.__setattr__(self, name, check_real(name, getattr(self, name), minimum=MIN_SIGMA))
+        check_flag("rotation_twins", self.rotation_twins)
+        object.__setattr__(self, "candidate_degrees", check_real("candidate_degrees", self.candidate_degrees,
+                                                                 minimum=0.0, maximum=180.0, above=True))
 
 
 def _kl_from_log_target(log_target: Tensor, log_prob: Tensor) -> Tensor:
@@ -73,7 +87,14 @@ def _euler_grid_rotations(bandwidth: int, device: torch.device, dtype: torch.dty
     return grid_rotations(bandwidth, torch.stack(torch.meshgrid(ticks, ticks, ticks, indexing="ij"), -1))
 
 
-def rotation_kl(log_prob: Tensor, target: Tensor, sigma: float) -> Tensor:
+def twins(rotation: Tensor) -> Tensor:
+    """``(batch, 3, 3)`` -> ``(batch, 7, 3, 3)``: each rotation, then composed with the half-turns about the fixed
+    grid's axes (on the right) and the moving grid's (on the left): the twins the solver tries beside each peak."""
+    turns = half_turns(device=rotation.device, dtype=rotation.dtype)
+    return torch.cat([rotation[:, None] @ turns, turns[1:] @ rotation[:, None]], 1)
+
+
+def rotation_kl(log_prob: Tensor, target: Tensor, sigma: float, *, with_twins: bool = False) -> Tensor:
     """KL divergence from a Gaussian on SO(3) around the true rotation to the Euler-grid distribution.
 
     Args:
@@ -81,19 +102,24 @@ def rotation_kl(log_prob: Tensor, target: Tensor, sigma: float) -> Tensor:
             (``SolveResult.rotation_log_prob``).
         target: ``(batch, 3, 3)`` true rotation.
         sigma: radians.
+        with_twins: the least of the KL divergences to a Gaussian at ``target`` and at each of its :func:`twins`:
+            the distribution may put its mass on any one of them (not a mixture, which would ask it to cover all
+            seven: why: docs/design_notes/solver.md).
 
     Returns:
         ``(batch,)``. The target is ``exp(-angle(R_cell, target)^2 / 2 sigma^2) sin(beta)``, Haar-weighted like ``p``.
     """
     bandwidth = log_prob.shape[-1] // 2
     cells = _euler_grid_rotations(bandwidth, log_prob.device, log_prob.dtype)
+    centres = twins(target.to(log_prob.dtype)) if with_twins else target.to(log_prob.dtype)[:, None]
+    _, beta, _ = euler_grid(bandwidth, device=log_prob.device, dtype=log_prob.dtype)
+    log_sin = torch.log(torch.sin(beta))[None, None, :, None]
     # One target at a time: broadcast over the batch, the products were (batch, 2B, 2B, 2B, 3, 3) temporaries,
     # 2.4 GB each at B = 64 and batch 32 (the angle is a constant of the loss: nothing is kept for backward).
-    angle = torch.stack([geodesic_distance(cells, rotation[None, None, None])
-                         for rotation in target.to(log_prob.dtype)])
-    _, beta, _ = euler_grid(bandwidth, device=log_prob.device, dtype=log_prob.dtype)
-    log_target = -angle ** 2 / (2 * sigma ** 2) + torch.log(torch.sin(beta))[None, None, :, None]
-    return _kl_from_log_target(log_target, log_prob)
+    return torch.stack([torch.stack([
+        _kl_from_log_target(-geodesic_distance(cells, rotation[None, None, None])[None] ** 2 / (2 * sigma ** 2)
+                            + log_sin, log_prob[item:item + 1])[0]
+        for rotation in centre]).amin(0) for item, centre in enumerate(centres)])
 
 
 def shift_kl(log_prob: Tensor, target: Tensor, sigma: float, *, periodic: tuple[bool, ...] | None = None) -> Tensor:
@@ -185,7 +211,8 @@ def pose_loss(result: SolveResult, target: PoseTarget, weights: LossWeights | No
     """
     weights = weights or LossWeights()
     terms = {
-        "rotation_kl": rotation_kl(result.rotation_log_prob, target.rotation, weights.rotation_sigma),
+        "rotation_kl": rotation_kl(result.rotation_log_prob, target.rotation, weights.rotation_sigma,
+                                   with_twins=weights.rotation_twins),
         "rotation_l1": geodesic_distance(result.rotation, target.rotation.to(result.rotation.dtype)),
     }
     linear = (result.scale[:, None, None] * result.rotation if compensation is None else compensation).detach()

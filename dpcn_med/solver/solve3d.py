@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from dpcn_med.errors import InputError
 from dpcn_med.geometry import half_turns, warp
 from dpcn_med.solver.config import SolverConfig, StageTemperatures, override
 from dpcn_med.solver.harmonics import even_degrees, isht, sht
@@ -53,6 +54,22 @@ class Alternatives:
 
 
 @dataclass
+class Ranking:
+    """Every candidate of :func:`solve`, ranked best first (what a learned choice among them trains on).
+
+    Attributes:
+        rotation: ``(batch, K, 3, 3)`` fixed-to-moving rotations.
+        scale: ``(batch, K)`` their scales (ones in rigid mode).
+        score: ``(batch, K)`` the ranking score (as :attr:`Alternatives.score`); ``-inf`` marks a near-duplicate or
+            implausible candidate.
+    """
+
+    rotation: Tensor
+    scale: Tensor
+    score: Tensor
+
+
+@dataclass
 class SolveResult:
     """Pose found by :func:`solve`: ``fixed(p) ~ moving(scale * rotation @ p + translation)``.
 
@@ -69,6 +86,7 @@ class SolveResult:
         timings: seconds per stage when ``profile=True`` (empty otherwise).
         alternatives: the runner-up candidates when ``alternatives > 0`` in the config, else (or with a single
             candidate) ``None``.
+        ranking: every candidate, ranked (no translations: cheap).
     """
 
     rotation: Tensor
@@ -81,6 +99,7 @@ class SolveResult:
     candidates: Tensor
     timings: dict[str, float]
     alternatives: Alternatives | None = None
+    ranking: Ranking | None = None
 
 
 @dataclass
@@ -183,8 +202,9 @@ def _downsample(volume: Tensor, size: int) -> Tensor:
     return F.avg_pool3d(volume[:, None], factor)[:, 0]
 
 
-def _candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, taper: float) -> Tensor:
-    """Phase-correlation peak of each candidate on a downsampled grid: ``linear (batch, K, 3, 3)`` -> ``(batch, K)``.
+def candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, taper: float) -> Tensor:
+    """Phase-correlation peak of each candidate on a downsampled grid: ``fixed, moving (batch, N, N, N)`` and
+    ``linear (batch, K, 3, 3)`` -> ``(batch, K)``, differentiable with respect to both volumes.
 
     The peak height measures how well the whole volume (not only its spectrum) agrees once rotated and scaled: it is
     what tells a rotation from its mirror twin.
@@ -209,11 +229,11 @@ def _rank_candidates(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score
     """
     plausible = keep & (sphere_score >= sphere_score.masked_fill(~keep, float("-inf")).amax(-1, keepdim=True)
                         - config.sphere_margin)
-    coarse = _candidate_scores(fixed, moving, linear, config.candidate_size, config.taper)
+    coarse = candidate_scores(fixed, moving, linear, config.candidate_size, config.taper)
     coarse = coarse.masked_fill(~plausible, float("-inf"))
     finalists = coarse.topk(min(config.finalists, coarse.shape[1]), dim=-1)
     finalist_linear = linear.gather(1, finalists.indices[..., None, None].expand(-1, -1, 3, 3))
-    fine = _candidate_scores(fixed, moving, finalist_linear, config.finalist_size, config.taper)
+    fine = candidate_scores(fixed, moving, finalist_linear, config.finalist_size, config.taper)
     fine = fine.masked_fill(finalists.values == float("-inf"), float("-inf"))
     ranked = fine.sort(-1, descending=True)
     # The other candidates follow, by their coarse score (-inf: implausible).
@@ -229,7 +249,7 @@ def _resolve_candidates(fixed_volume: Tensor, moving_volume: Tensor, spectra: _S
     """Drop near-duplicate and implausible candidates, measure each one's scale, rank them by translation peak.
 
     Args:
-        fixed_volume, moving_volume: ``(batch, N, N, N)``.
+        fixed_volume, moving_volume: ``(batch, N, N, N)`` the volumes the candidates are scored on.
         spectra: steps 1-3a of both volumes.
         per_band: ``(batch, K_b, 3, 3)`` the candidates of each band.
         candidates: ``(batch, K, 3, 3)`` all of them, ``per_band`` concatenated.
@@ -307,7 +327,8 @@ def _chosen_scale(spectra: _Spectra, rotation: Tensor, mode: str, config: Solver
 
 
 def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: SolverConfig | None = None,
-          temperatures: StageTemperatures | None = None, **options) -> SolveResult:
+          temperatures: StageTemperatures | None = None, score_volumes: tuple[Tensor, Tensor] | None = None,
+          scale_rotation: Tensor | None = None, **options) -> SolveResult:
     """Globally register two volumes on the same cubic grid by differentiable phase correlation (DPC).
 
     Args:
@@ -316,6 +337,11 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         mode: ``"similarity"`` (rotation, isotropic scale, translation: 7 DoF) or ``"rigid"`` (6 DoF).
         config: settings; defaults to :class:`SolverConfig`.
         temperatures: softmax temperatures; defaults to :class:`StageTemperatures`.
+        score_volumes: ``(fixed, moving)`` grids shaped as ``fixed`` on which the candidates are ranked by their
+            translation peak (a learned model's translation-stage features); defaults to ``fixed`` and ``moving``.
+        scale_rotation: ``(batch, 3, 3)`` rotation the scale stage measures at instead of the chosen one (training:
+            the true rotation, as the translation stage is compensated by the truth); the result's rotation is still
+            the chosen one.
         **options: overrides of ``config`` fields, e.g. ``bandwidth=32, refine=False``.
 
     Returns:
@@ -324,7 +350,7 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
 
     Raises:
         InputError: malformed grids (shape, size, dtype, NaN/Inf, empty batch), a bandwidth out of range, an unknown
-            mode, or a setting or temperature out of range.
+            mode, a setting or temperature out of range, or score_volumes not shaped as the inputs.
 
     Convention:
         Voxel coordinates ``(x, y, z)`` from the grid centre, ZYZ Euler grid and pull resampling, all as in
@@ -340,6 +366,13 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
     check_mode(mode)
     bandwidth = check_bandwidth(config.bandwidth, size)
     fixed_volume, moving_volume = fixed[:, 0], moving[:, 0]
+    if score_volumes is None:
+        score_fixed, score_moving = fixed_volume, moving_volume
+    else:
+        if any(volume.shape != fixed.shape for volume in score_volumes):
+            raise InputError(f"score_volumes {[tuple(v.shape) for v in score_volumes]}: expected two grids of the "
+                             f"inputs' shape {tuple(fixed.shape)}")
+        score_fixed, score_moving = (volume[:, 0] for volume in score_volumes)
     clock = StageClock(fixed.device, config.profile)
     with clock("spectrum and sphere"):
         spectra = _spectra(fixed_volume, moving_volume, bandwidth, config)
@@ -351,8 +384,9 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         candidates = torch.cat(per_band, 1)
     with clock("candidates"), torch.no_grad():
         keep, candidate_scale, ranked, ranked_score = _resolve_candidates(
-            fixed_volume, moving_volume, spectra, per_band, candidates, mode, config, temperatures)
-    rotation = candidates[torch.arange(fixed.shape[0], device=fixed.device), ranked[:, 0]]
+            score_fixed.detach(), score_moving.detach(), spectra, per_band, candidates, mode, config, temperatures)
+    rows = torch.arange(fixed.shape[0], device=fixed.device)[:, None]
+    rotation = candidates[rows[:, 0], ranked[:, 0]]
     alternatives = None
     if config.alternatives > 0 and candidates.shape[1] > 1:  # one candidate (one peak, no half-turns): no runner-up
         with clock("alternatives"), torch.no_grad():
@@ -362,7 +396,8 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         with clock("rotation refinement"), torch.no_grad():
             rotation = _refine_chosen(spectra, rotation, origin[ranked[:, 0]], bandwidth, config)
     with clock("scale"):
-        scale_estimate, scale = _chosen_scale(spectra, rotation, mode, config, temperatures)
+        scale_estimate, scale = _chosen_scale(spectra, rotation if scale_rotation is None else
+                                              scale_rotation.to(rotation.dtype), mode, config, temperatures)
     with clock("translation"):
         translation, translation_estimate = _translation_stage(
             fixed_volume, moving, (scale[:, None, None] * rotation)[:, None], temperatures.translation, config,
@@ -371,4 +406,6 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
                        confidence=translation_estimate.peak.mass,
                        rotation_log_prob=so3_log_prob(correlations[0], temperatures.rotation),  # the primary band's
                        scale_estimate=scale_estimate, translation_estimate=translation_estimate,
-                       candidates=keep.sum(-1), timings=clock.seconds, alternatives=alternatives)
+                       candidates=keep.sum(-1), timings=clock.seconds, alternatives=alternatives,
+                       ranking=Ranking(rotation=candidates[rows, ranked], scale=candidate_scale[rows, ranked],
+                                       score=ranked_score))

@@ -25,7 +25,7 @@ from dpcn_med.arguments import check_integer
 from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.models import ModelConfig
 from dpcn_med.preprocess import Preprocessing
-from dpcn_med.solver import SolverConfig
+from dpcn_med.solver import LossWeights, SolverConfig
 from dpcn_med.synth import PairConfig
 from dpcn_med.train.folders import check_crop
 
@@ -121,6 +121,8 @@ class TrainConfig:
         model: the network (:class:`dpcn_med.models.ModelConfig`).
         data: the pairs.
         optimiser: the optimisation.
+        loss: the weights and targets of the training terms (:class:`dpcn_med.solver.LossWeights`; the rotation
+            width in radians).
         seed: of the pairs and the initial weights (each rank, and each resumed start, draws its own stream of
             synthetic pairs; rank ``r`` crops each folder's real pairs with a seed drawn from ``seed + r`` and the
             folder's place in the list).
@@ -134,6 +136,7 @@ class TrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     data: DataConfig = field(default_factory=DataConfig)
     optimiser: OptimiserConfig = field(default_factory=OptimiserConfig)
+    loss: LossWeights = field(default_factory=LossWeights)
     seed: int = 0
     device: str = "auto"
     log_every: int = 10

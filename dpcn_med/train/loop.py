@@ -38,12 +38,16 @@ from dpcn_med.train.folders import FolderPairs, collate_pairs, derived_seed
 SUCCESS_DEGREES, SUCCESS_VOXELS = 5.0, 2.0
 """A registration succeeds within 5 degrees and 2 voxels (the learning issue's criterion)."""
 
-LOSS_TERMS = ("total", "rotation_kl", "rotation_l1", "scale_kl", "scale_l1", "translation_kl", "translation_l1")
+LOSS_TERMS = ("total", "rotation_kl", "rotation_l1", "scale_kl", "scale_l1", "translation_kl", "translation_l1",
+              "candidate_ranking")
+CANDIDATE_ERRORS = ("chosen_error_deg", "best_candidate_error_deg")
+"""Logged with the training terms (batch medians): the rotation error of the candidate the model chose, and of the
+candidate nearest the truth among all it ranked: the choice's error against the best it could have made."""
 MAX_SKIPPED_IN_A_ROW = 20
 """Steps in a row with non-finite gradients after which training stops: it has diverged, not met one bad pair."""
 SCORES = ("success", "rotation_error_deg", "translation_error_vox")
-COLUMNS = ("step", "kind", "learning_rate", *LOSS_TERMS, "skipped_steps", "pairs_per_second", *SCORES,
-           *(f"real_{name}" for name in SCORES))
+COLUMNS = ("step", "kind", "learning_rate", *LOSS_TERMS, *CANDIDATE_ERRORS, "skipped_steps", "pairs_per_second",
+           *SCORES, *(f"real_{name}" for name in SCORES))
 
 
 def learning_rate(step: int, config: TrainConfig) -> float:
@@ -304,7 +308,10 @@ def _descend(run: _Run, fixed: Tensor, moving: Tensor, target: PoseTarget, amp: 
              ) -> tuple[dict[str, Tensor], bool]:
     """One optimiser step on a batch: ``(loss terms, whether the gradients were finite and the step was taken)``."""
     result = run.network(fixed, moving, target, generator=run.generator, amp=amp)
-    terms = pose_loss(result, target)
+    terms = pose_loss(result, target, run.config.loss)
+    terms["chosen_error_deg"] = torch.rad2deg(geodesic_distance(result.rotation.detach().double(),
+                                                                target.rotation.double())).median()
+    terms["best_candidate_error_deg"] = result.candidate_errors.min(-1).values.median()
     run.optimiser.zero_grad(set_to_none=True)
     terms["total"].backward()
     # One non-finite gradient (a degenerate pair: an empty crop, a constant volume) would make every weight NaN
@@ -320,12 +327,13 @@ def _descend(run: _Run, fixed: Tensor, moving: Tensor, target: PoseTarget, amp: 
 def _train_row(run: _Run, step: int, rate: float, terms: dict[str, Tensor], skipped: int, pairs_per_second: float
                ) -> dict:
     """The log row of a step: its loss terms averaged over the processes (every rank takes part)."""
-    values = torch.stack([terms[t].detach().float() for t in LOSS_TERMS])
+    names = (*LOSS_TERMS, *CANDIDATE_ERRORS)
+    values = torch.stack([terms[t].detach().float() for t in names])
     if run.process.distributed:
         dist.all_reduce(values)
         values /= run.process.world_size
     return {"step": step, "kind": "train", "learning_rate": rate,
-            **{t: v.item() for t, v in zip(LOSS_TERMS, values)}, "skipped_steps": skipped,
+            **{t: v.item() for t, v in zip(names, values)}, "skipped_steps": skipped,
             "pairs_per_second": pairs_per_second}
 
 

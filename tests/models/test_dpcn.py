@@ -10,6 +10,8 @@ import torch
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import geodesic_distance
 from dpcn_med.models import DPCN, ModelConfig, load_model, pose_loss, save_model
+from dpcn_med.models.dpcn import ranking_loss
+from dpcn_med.solver import LossWeights
 from dpcn_med.preprocess import Preprocessing
 from dpcn_med.solver import SolverConfig, solve
 from tests.models.conftest import TINY, pairs
@@ -110,7 +112,7 @@ class TestDPCN:
         assert (angle > 0).all() and (angle < torch.deg2rad(torch.tensor(10.0))).all()  # noisy, near the truth
         terms = pose_loss(output, target)
         assert set(terms) == {"rotation_kl", "rotation_l1", "translation_kl", "translation_l1", "scale_kl",
-                              "scale_l1", "total"}
+                              "scale_l1", "candidate_ranking", "total"}
         terms["total"].backward()
         for extractor in (model.rotation_fixed, model.rotation_moving, model.translation_fixed,
                           model.translation_moving):
@@ -223,3 +225,61 @@ class TestDPCN:
             optimiser.step()
             losses.append(loss.item())
         assert min(losses[-3:]) < 0.9 * losses[0], losses
+
+
+class TestCandidateRanking:
+    """The learned choice among the solver's candidates (../shared/LEARNING.md, change 1)."""
+
+    def test_training_scores_the_solver_s_candidates_with_gradients(self):
+        fixed, moving, target = pairs(16, 2, seed=6)
+        model = DPCN(TINY).train()
+        output = model(fixed, moving, target, generator=torch.Generator().manual_seed(0))
+        ranking = output.stage.ranking
+        assert output.candidate_scores.shape == ranking.score.shape == output.candidate_errors.shape
+        dropped = ranking.score == float("-inf")
+        assert (output.candidate_scores[dropped] == float("-inf")).all()
+        assert (output.candidate_errors[dropped] == float("inf")).all()
+        assert torch.isfinite(output.candidate_scores[:, 0]).all()  # the chosen candidate is never dropped
+        # The errors are each candidate's angle to the truth.
+        torch.testing.assert_close(output.candidate_errors[:, 0].double(), torch.rad2deg(geodesic_distance(
+            ranking.rotation[:, 0].double(), target.rotation.double())), rtol=0, atol=1e-3)
+        weights = LossWeights(candidate_ranking=2.0, candidate_degrees=180.0)
+        terms = pose_loss(output, target, weights)
+        assert terms["candidate_ranking"] > 0
+        terms["candidate_ranking"].backward()
+        # The ranking reaches the translation extractors (which choose at inference) and the ranking temperature.
+        for extractor in (model.translation_fixed, model.translation_moving):
+            assert extractor.gain.grad is not None and extractor.gain.grad != 0
+        assert torch.isfinite(model.ranking_temperature.grad) and model.ranking_temperature.grad != 0
+
+    def test_eval_mode_has_no_ranking_term(self):
+        fixed, moving, target = pairs(16, 1, seed=7)
+        with torch.no_grad():
+            output = DPCN(TINY).eval()(fixed, moving)
+        assert output.candidate_scores is None
+        assert pose_loss(output, target)["candidate_ranking"] == 0
+
+    @staticmethod
+    def _output(scores, errors, temperature=0.01):
+        from dpcn_med.models import DPCNOutput
+        return DPCNOutput(rotation=None, scale=None, translation=None, confidence=None, stage=None,
+                          translation_estimate=None, compensation=None, candidate_scores=scores,
+                          candidate_errors=errors, ranking_temperature=torch.tensor(temperature, requires_grad=True))
+
+    def test_lower_when_the_nearest_candidate_ranks_first(self):
+        inf = float("inf")
+        errors = torch.tensor([[3.0, 90.0, 180.0, inf]])
+        right = ranking_loss(self._output(torch.tensor([[0.3, 0.1, 0.05, -inf]]), errors), 15.0)
+        wrong = ranking_loss(self._output(torch.tensor([[0.05, 0.3, 0.1, -inf]]), errors), 15.0)
+        assert 0 <= right.item() < 0.01 < wrong.item()
+
+    def test_zero_without_a_near_candidate_and_finite_gradients_with_dropped_ones(self):
+        inf = float("inf")
+        scores = torch.tensor([[0.3, 0.1, -inf], [0.2, 0.25, -inf]], requires_grad=True)
+        output = self._output(scores, torch.tensor([[40.0, 90.0, inf], [2.0, 50.0, inf]]))
+        loss = ranking_loss(output, 15.0)
+        assert loss[0] == 0 and loss[1] > 0
+        loss.sum().backward()
+        # Before: -inf / temperature gave the temperature a NaN gradient, and the next step NaN weights.
+        assert torch.isfinite(output.ranking_temperature.grad)
+        assert torch.isfinite(scores.grad).all() and (scores.grad[0] == 0).all()

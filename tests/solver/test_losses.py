@@ -11,7 +11,8 @@ import torch
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import axis_angle_to_matrix, random_rotation
 from dpcn_med.solver import LossWeights, PoseTarget, StageTemperatures, Temperatures, pose_loss, solve
-from dpcn_med.solver.losses import rotation_kl, shift_kl
+from dpcn_med.geometry import geodesic_distance
+from dpcn_med.solver.losses import rotation_kl, shift_kl, twins
 from dpcn_med.solver.so3 import grid_rotations, so3_log_prob
 from dpcn_med.synth import random_poses
 from tests.conftest import volume_grid
@@ -53,6 +54,33 @@ class TestRotationKL:
         assert right_kl.item() < 0.5 * rotation_kl(log_prob, wrong, math.radians(15.0)).item()
 
 
+    def test_twin_aware_target_does_not_penalise_a_half_turn_twin(self):
+        bandwidth = 6
+        truth = random_rotation(1, torch.Generator().manual_seed(31))
+        from dpcn_med.geometry import geodesic_distance, half_turns
+        twin = truth @ half_turns(torch.device("cpu"), torch.float64)[2]  # a half-turn about the fixed grid's y
+        index = torch.stack(torch.meshgrid(*[torch.arange(12)] * 3, indexing="ij"), -1).double()
+        log_prob = so3_log_prob(torch.cos(geodesic_distance(grid_rotations(bandwidth, index), twin[0]))[None], 0.05)
+        sigma = math.radians(15.0)
+        plain = rotation_kl(log_prob, truth, sigma)
+        aware = rotation_kl(log_prob, truth, sigma, with_twins=True)
+        assert aware.item() < 0.25 * plain.item()
+        # At the truth itself it is the plain KL: the distribution need not cover the twins too (a mixture target
+        # asked for that, and a sharp peak at the truth cost 26 nats).
+        at_truth = so3_log_prob(torch.cos(geodesic_distance(grid_rotations(bandwidth, index), truth[0]))[None], 0.05)
+        torch.testing.assert_close(rotation_kl(at_truth, truth, sigma, with_twins=True),
+                                   rotation_kl(at_truth, truth, sigma))
+        torch.testing.assert_close(aware, rotation_kl(log_prob, twin, sigma))
+
+    def test_twins_are_the_seven_half_turn_variants(self):
+        truth = random_rotation(2, torch.Generator().manual_seed(32))
+        variants = twins(truth)
+        assert variants.shape == (2, 7, 3, 3)
+        torch.testing.assert_close(variants[:, 0], truth)
+        angles = torch.rad2deg(geodesic_distance(variants, truth[:, None]))
+        torch.testing.assert_close(angles[:, 1:], torch.full((2, 6), 180.0, dtype=torch.float64), rtol=0, atol=1e-4)
+
+
 class TestLossWeights:
     def test_defaults_and_numpy_values(self):
         assert LossWeights(scale_l1=np.float32(3.0), shift_sigma=np.int64(1)) == LossWeights()
@@ -66,6 +94,10 @@ class TestLossWeights:
         ("rotation_l1", float("nan"), r"rotation_l1 is nan; expected a finite number >= 0"),  # was a NaN total
         ("rotation_kl", -5.0, r"rotation_kl is -5\.0; expected a finite number >= 0"),  # rewarded a worse match
         ("scale_kl", "1", r"scale_kl is '1' \(str\); expected a finite number >= 0"),
+        ("candidate_ranking", -1.0, r"candidate_ranking is -1\.0; expected a finite number >= 0"),
+        ("candidate_degrees", 0.0, r"candidate_degrees is 0\.0; expected a finite number > 0"),
+        ("candidate_degrees", 200.0, r"candidate_degrees is 200\.0; expected a finite number > 0 and <= 180"),
+        ("rotation_twins", 1, r"rotation_twins"),
     ])
     def test_bad_values_are_refused(self, field, value, message):
         with pytest.raises(InputError, match=message):

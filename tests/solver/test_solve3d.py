@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from dpcn_med.errors import InputError
-from dpcn_med.geometry import half_turns, rotation_angle
+from dpcn_med.geometry import axis_angle_to_matrix, half_turns, rotation_angle
 from dpcn_med.solver import SolverConfig, StageTemperatures, solve
 from dpcn_med.solver.config import MIN_TEMPERATURE, override
 from dpcn_med.solver.so3 import sphere_correlation
-from dpcn_med.solver.solve3d import _candidate_scores, _sphere
+from dpcn_med.solver.solve3d import _sphere, candidate_scores
 from dpcn_med.solver.spectrum import magnitude_spectrum
 from dpcn_med.solver.sphere import quadrature_weights, sphere_directions
 from dpcn_med.solver.validation import check_bandwidth
@@ -247,7 +247,7 @@ class TestRecoveryOnRealAnatomy:
                                                SolverConfig(), directions, weights) for volume in (fixed, moving))
         sphere = sphere_correlation(moving_sphere, fixed_sphere, weights, directions, rotations)[0]
         assert abs(sphere[0] - sphere[1]).item() < 0.01 * sphere[0].item()
-        peaks = _candidate_scores(fixed, moving, pose.scale * rotations, size, 0.25)[0]
+        peaks = candidate_scores(fixed, moving, pose.scale * rotations, size, 0.25)[0]
         assert peaks[0].item() > 2 * peaks[1].item()
 
 
@@ -286,6 +286,48 @@ class TestAlternatives:
         # The symmetric template's spectrum cannot tell the pose from its mirror twin: the twin must be offered.
         twin = (pose.rotation @ half_turns(torch.device("cpu"), torch.float64)[1]).float()
         assert torch.rad2deg(rotation_angle(rotations @ twin.T)).min() < 5.0
+
+
+class TestRanking:
+    def test_every_candidate_ranked_with_the_choice_first(self):
+        fixed = volume_grid("mni", 32)
+        moving = random_poses(1, 32, seed=20)[0].moving_from(fixed)
+        result = solve(fixed, moving, "similarity", refine=False)
+        ranking = result.ranking
+        count = ranking.score.shape[1]
+        assert ranking.rotation.shape == (1, count, 3, 3) and ranking.scale.shape == (1, count)
+        kept = ranking.score[0] > float("-inf")
+        assert 1 <= kept.sum() <= result.candidates.item()
+        assert kept[:int(kept.sum())].all()  # the dropped ones come last
+        torch.testing.assert_close(ranking.rotation[:, 0], result.rotation)
+
+    def test_score_volumes_choose_and_default_to_the_inputs(self):
+        fixed = volume_grid("mni", 32)
+        pose = random_poses(1, 32, seed=14)[0]
+        moving = pose.moving_from(fixed)
+        plain = solve(fixed, moving, "rigid")
+        same = solve(fixed, moving, "rigid", score_volumes=(fixed, moving))
+        torch.testing.assert_close(same.rotation, plain.rotation)
+        torch.testing.assert_close(same.ranking.score, plain.ranking.score)
+        # Scored on other volumes (a learned model's translation features), the ranking is theirs: on noise it is
+        # not the inputs' any more.
+        noise = torch.rand((2, *fixed.shape), generator=torch.Generator().manual_seed(0))
+        other = solve(fixed, moving, "rigid", score_volumes=(noise[0], noise[1]))
+        assert not torch.equal(other.ranking.score, plain.ranking.score)
+        with pytest.raises(InputError, match=r"score_volumes .*expected two grids of the inputs' shape"):
+            solve(fixed, moving, "rigid", score_volumes=(fixed[..., :16], moving[..., :16]))
+
+    def test_scale_rotation_is_where_the_scale_stage_measures(self):
+        fixed = volume_grid("mni", 32)
+        pose = random_poses(1, 32, seed=21, similarity=True, scale_range=(1.1, 1.1))[0]
+        moving = pose.moving_from(fixed)
+        truth = pose.rotation[None].float()
+        at_truth = solve(fixed, moving, refine=False, scale_rotation=truth)
+        turn = axis_angle_to_matrix(torch.tensor([0.0, 0.0, 1.0])) @ truth  # 57 degrees away
+        elsewhere = solve(fixed, moving, refine=False, scale_rotation=turn)
+        assert abs(at_truth.scale.item() - 1.1) < 0.05
+        assert not torch.allclose(at_truth.scale_estimate.peak.log_prob, elsewhere.scale_estimate.peak.log_prob)
+        torch.testing.assert_close(at_truth.rotation, solve(fixed, moving, refine=False).rotation)
 
 
 class TestProfile:

@@ -12,6 +12,7 @@ import torch
 from dpcn_med.cli import main
 from dpcn_med.errors import InputError, InputNotFoundError
 from dpcn_med.models import ModelConfig
+from dpcn_med.solver import LossWeights
 from dpcn_med.train import DataConfig, OptimiserConfig, TrainConfig, load_config
 from dpcn_med.train.data import volume_bank
 from tests.train.conftest import TINY_YAML, tiny_config
@@ -27,6 +28,15 @@ class TestConfig:
         (tmp_path / "paths.yaml").write_text("data: {volumes: [images/ct.nii.gz, /abs/mr.nii.gz]}\n")
         assert load_config(tmp_path / "paths.yaml").data.volumes == (str(tmp_path / "images" / "ct.nii.gz"),
                                                                       "/abs/mr.nii.gz")
+
+    def test_loss_section(self, tmp_path):
+        (tmp_path / "loss.yaml").write_text("loss: {rotation_l1: 0, candidate_ranking: 2, rotation_twins: true}\n")
+        loss = load_config(tmp_path / "loss.yaml").loss
+        assert loss == LossWeights(rotation_l1=0.0, candidate_ranking=2.0, rotation_twins=True)
+        assert TrainConfig().loss == LossWeights()
+        (tmp_path / "bad.yaml").write_text("loss: {ranking: 1}\n")
+        with pytest.raises(InputError, match="ranking"):
+            load_config(tmp_path / "bad.yaml")
 
     def test_a_tilde_is_the_home_folder(self, tmp_path, monkeypatch):
         monkeypatch.setenv("HOME", str(tmp_path / "home"))

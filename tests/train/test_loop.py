@@ -66,6 +66,9 @@ class TestTrain:
         assert [int(r["step"]) for r in rows if r["kind"] == "train"] == [1, 2, 3, 4]
         assert [int(r["step"]) for r in rows if r["kind"] == "validation"] == [0, 2, 4]
         assert all(float(r["total"]) > 0 for r in rows if r["kind"] == "train")
+        # The chosen candidate's error is logged beside the best one's: never below it.
+        assert all(float(r["best_candidate_error_deg"]) <= float(r["chosen_error_deg"]) + 1e-3
+                   for r in rows if r["kind"] == "train")
         assert record["steps"] == 4 and record["validation_after"]["step"] == 4
         loaded = load_model(output / "model")
         assert loaded.config == config.model
@@ -101,9 +104,9 @@ class TestTrain:
 
         losses, calls = loop.pose_loss, []
 
-        def nan_at_the_second_step(result, target):
+        def nan_at_the_second_step(result, target, weights=None):
             calls.append(1)
-            terms = losses(result, target)
+            terms = losses(result, target, weights)
             return {**terms, "total": terms["total"] * math.nan} if len(calls) == 2 else terms
 
         monkeypatch.setattr(loop, "pose_loss", nan_at_the_second_step)
