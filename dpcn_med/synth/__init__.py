@@ -7,13 +7,15 @@ module             contents
 ``pseudo_ct``      :func:`pseudo_ct`: a CT in Hounsfield units from a T1 MR and tissue masks (SimpleITK)
 ``contrast``       random intensity maps, bias field, blur, thick slices, noise: :func:`random_modality`
 ``ultrasound``     :func:`simulated_ultrasound`: 3-D ultrasound from a CT-like volume
+``anatomy``        :func:`deformed_anatomy`: a random smooth deformation of a base volume (new heads)
 ``pairs``          :func:`synthetic_pairs`: fixed, moving and their :class:`~dpcn_med.solver.PoseTarget`
 =================  ====================================================================================
 
-The torch modules (``contrast``, ``ultrasound``, ``pairs``) work on batches ``(B, 1, N, N, N)`` on any device and
-draw from a ``torch.Generator``, so a seed reproduces a batch.
+The torch modules (``contrast``, ``ultrasound``, ``anatomy``, ``pairs``) work on batches ``(B, 1, N, N, N)`` on any
+device and draw from a ``torch.Generator``, so a seed reproduces a batch.
 """
 
+from dpcn_med.synth.anatomy import AnatomyConfig, deformed_anatomy
 from dpcn_med.synth.contrast import (
     ContrastConfig,
     bias_field,
@@ -28,6 +30,7 @@ from dpcn_med.synth.poses import Pose, random_poses
 from dpcn_med.synth.pseudo_ct import HEAD_CT, CTTissues, pseudo_ct
 from dpcn_med.synth.ultrasound import UltrasoundConfig, simulated_ultrasound
 
-__all__ = ["HEAD_CT", "PAIR_MODALITIES", "CTTissues", "ContrastConfig", "PairConfig", "Pose", "UltrasoundConfig",
-           "bias_field", "blur", "noise", "pseudo_ct", "random_intensity_map", "random_modality", "random_poses",
-           "resolution_loss", "simulated_ultrasound", "slab_mask", "synthetic_pairs"]
+__all__ = ["HEAD_CT", "PAIR_MODALITIES", "AnatomyConfig", "CTTissues", "ContrastConfig", "PairConfig", "Pose",
+           "UltrasoundConfig", "bias_field", "blur", "deformed_anatomy", "noise", "pseudo_ct", "random_intensity_map",
+           "random_modality", "random_poses", "resolution_loss", "simulated_ultrasound", "slab_mask",
+           "synthetic_pairs"]

@@ -12,6 +12,7 @@ from dpcn_med.errors import InputError
 from dpcn_med.geometry import random_rotation, warp
 from dpcn_med.solver import PoseTarget
 from dpcn_med.synth._common import check_volumes, host_generator, integers, normal, uniform
+from dpcn_med.synth.anatomy import AnatomyConfig, deformed_anatomy
 from dpcn_med.synth.contrast import ContrastConfig, random_modality
 from dpcn_med.synth.ultrasound import UltrasoundConfig, simulated_ultrasound
 
@@ -42,6 +43,7 @@ class PairConfig:
         fixed_modality, moving_modality: one of :data:`PAIR_MODALITIES` for each side.
         fixed_contrast, moving_contrast: ranges of the random modality of each side.
         ultrasound: field of view and acoustics of a simulated ultrasound side.
+        anatomy: the random deformation of each base volume before both sides are made (off by default).
 
     Raises:
         InputError: an unknown mode or modality, or a range outside its domain.
@@ -57,6 +59,7 @@ class PairConfig:
     fixed_contrast: ContrastConfig = field(default_factory=ContrastConfig)
     moving_contrast: ContrastConfig = field(default_factory=ContrastConfig)
     ultrasound: UltrasoundConfig = field(default_factory=UltrasoundConfig)
+    anatomy: AnatomyConfig = field(default_factory=AnatomyConfig)
 
     def __post_init__(self) -> None:
         if self.mode not in _MODES:
@@ -147,8 +150,10 @@ def synthetic_pairs(volumes: Tensor, generator: torch.Generator, config: PairCon
                     ) -> tuple[Tensor, Tensor, PoseTarget]:
     """Fixed and moving volumes of the same anatomy in two simulated modalities, with their exact pose.
 
-    The fixed volume is a modality of ``volumes`` (slab-cropped with probability ``config.crop_probability``); the
-    moving one is another modality of ``volumes`` moved by a random similarity ``A p + t``, ``A = scale * rotation``:
+    Each base volume is first deformed into a head of its own (:func:`~dpcn_med.synth.anatomy.deformed_anatomy`,
+    with ``config.anatomy``; off by default), shared by both sides. The fixed volume is a modality of ``volumes``
+    (slab-cropped with probability ``config.crop_probability``); the moving one is another modality of ``volumes``
+    moved by a random similarity ``A p + t``, ``A = scale * rotation``:
     ``moving = warp(modality(volumes), A^-1, -A^-1 t)`` (as :meth:`dpcn_med.synth.Pose.moving_from`, batched), so
     ``fixed(p) ~ moving(A p + t)`` wherever both have content. Content moved off the grid is lost.
 
@@ -174,6 +179,7 @@ def synthetic_pairs(volumes: Tensor, generator: torch.Generator, config: PairCon
     size = check_volumes("volumes", volumes, cubic=True)
     fixed_modality = _check_modality("fixed_modality", fixed_modality or config.fixed_modality)
     moving_modality = _check_modality("moving_modality", moving_modality or config.moving_modality)
+    volumes = deformed_anatomy(volumes, generator, config.anatomy)
     target = _random_poses(volumes.shape[0], size, generator, config, volumes)
     fixed = _simulate(volumes, generator, fixed_modality, config.fixed_contrast, config)
     fixed = fixed * _slab_masks(volumes, generator, config)
