@@ -6,6 +6,7 @@ each side a random non-monotonic intensity map with bias field, blur, thick slic
 within 5 degrees and translation within 2 voxels (the learning issue's criterion). Prints a table and writes it under
 docs/. ``--volumes training`` makes the pairs from the config's training volumes instead, with the same unseen
 contrasts and poses: a model that wins there and loses on held-out volumes has learned its training anatomy.
+``--per-volume`` draws the pairs from each volume alone, a row per model and volume.
 
     python benchmarks/learned_accuracy.py --config training/configs/ct_mr.yaml --models none runs/ct_mr/model
 """
@@ -60,6 +61,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--volumes", choices=("validation", "training"), default="validation",
                         help="the config's held-out volumes (the acceptance), or its training volumes with unseen "
                         "contrasts and poses (does a model generalise to new anatomy, or only to new contrasts?)")
+    parser.add_argument("--per-volume", action="store_true",
+                        help="--pairs pairs from each volume alone, one row per model and volume (which anatomy a "
+                        "model fails on)")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "learned_accuracy.md")
     args = parser.parse_args(argv)
@@ -68,12 +72,18 @@ def main(argv: list[str] | None = None) -> int:
     bandwidth, mode = config.model.bandwidth, config.data.pair.mode
     # Prepared as in training (the config's grid preprocessing), as register prepares a model's inputs.
     volumes = config.data.validation_volumes if args.volumes == "validation" else config.data.volumes
-    bank = volume_bank(volumes, 2 * bandwidth, config.model.grid_preprocessing(), device=device)
-    pairs = validation_set(bank, args.pairs, args.seed, config.data.pair)
-    lines = ["| model | pairs | success (< 5 deg and < 2 voxels) | median rotation error (deg) | "
+    preprocessing = config.model.grid_preprocessing()
+    if args.per_volume:  # the same number of pairs from each volume alone (other pairs than the pooled set's)
+        groups = [(Path(name).name, validation_set(volume_bank((name,), 2 * bandwidth, preprocessing, device=device),
+                                                   args.pairs, args.seed, config.data.pair)) for name in volumes]
+    else:
+        groups = [(None, validation_set(volume_bank(volumes, 2 * bandwidth, preprocessing, device=device),
+                                        args.pairs, args.seed, config.data.pair))]
+    volume_column = " volume |" if args.per_volume else ""
+    lines = [f"| model |{volume_column} pairs | success (< 5 deg and < 2 voxels) | median rotation error (deg) | "
              "median translation error (voxels) | 90th percentile rotation error (deg) | "
              "a candidate within 5 deg |",
-             "|---|---|---|---|---|---|---|"]
+             "|---|" + ("---|" if args.per_volume else "") + "---|---|---|---|---|---|"]
     for name in args.models:
         if name.lower() in LEARNING_FREE:
             label = "learning-free solver"
@@ -86,13 +96,15 @@ def main(argv: list[str] | None = None) -> int:
 
             def predict(fixed, moving, model=model):
                 return model(fixed, moving, mode=mode)
-        rotation, translation, best = errors(predict, pairs)
-        success = sum(r < SUCCESS_DEGREES and t < SUCCESS_VOXELS for r, t in zip(rotation, translation))
-        lines.append(f"| {label} | {len(rotation)} | {100 * success / len(rotation):.1f}% | "
-                     f"{statistics.median(rotation):.2f} | {statistics.median(translation):.2f} | "
-                     f"{statistics.quantiles(rotation, n=10)[-1]:.1f} | "
-                     f"{100 * sum(b < SUCCESS_DEGREES for b in best) / len(best):.1f}% |")
-        print(lines[-1], file=sys.stderr)
+        for volume, pairs in groups:
+            rotation, translation, best = errors(predict, pairs)
+            success = sum(r < SUCCESS_DEGREES and t < SUCCESS_VOXELS for r, t in zip(rotation, translation))
+            lines.append(f"| {label} |{f' {volume} |' if volume else ''} {len(rotation)} | "
+                         f"{100 * success / len(rotation):.1f}% | "
+                         f"{statistics.median(rotation):.2f} | {statistics.median(translation):.2f} | "
+                         f"{statistics.quantiles(rotation, n=10)[-1]:.1f} | "
+                         f"{100 * sum(b < SUCCESS_DEGREES for b in best) / len(best):.1f}% |")
+            print(lines[-1], file=sys.stderr)
     names = ", ".join(Path(v).name for v in volumes)
     lines.append("")
     lines.append("The last column: the share of pairs where some candidate the solver ranked lies within 5 degrees of "

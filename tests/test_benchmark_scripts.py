@@ -324,3 +324,29 @@ class TestQualityFit:
         ok = np.array([False, False, True, True])
         assert choose(p, ok, 0.0) == pytest.approx(0.5)  # log-odds midway between 0.2 and 0.8
         assert choose(np.array([0.9, 0.95]), np.array([True, True]), 0.0) == 0.9  # no failure below: the lowest success
+
+
+class TestLearnedAccuracy:
+    @pytest.mark.parametrize("extra, rows, title", [
+        ([], 1, "# Held-out heterogeneous accuracy"),
+        (["--per-volume"], 2, "# Held-out heterogeneous accuracy"),
+        (["--volumes", "training"], 1, "# Heterogeneous accuracy on the training volumes"),
+    ])
+    def test_one_row_per_model_and_group(self, extra, rows, title, tmp_path):
+        (tmp_path / "tiny.yaml").write_text(
+            "model: {bandwidth: 8, channels: [4, 8], modalities: [ct, mr]}\n"
+            "data: {volumes: [mni], validation_volumes: [mni, mni-head], pair: {max_shift_fraction: 0.1}}\n")
+        output = tmp_path / "table.md"
+        assert script("learned_accuracy").main(["--config", str(tmp_path / "tiny.yaml"), "--models", "none",
+                                                "--pairs", "2", "--device", "cpu", "--output", str(output),
+                                                *extra]) == 0
+        text = output.read_text()
+        assert text.startswith(title)
+        table = [line for line in text.splitlines() if line.startswith("| learning-free solver |")]
+        assert len(table) == rows
+        for line in table:
+            cells = [cell.strip() for cell in line.strip("|").split("|")]
+            assert len(cells) == (8 if "--per-volume" in extra else 7)
+            assert cells[-1].endswith("%") and 0.0 <= float(cells[-1][:-1]) <= 100.0
+        if "--per-volume" in extra:
+            assert [line.split("|")[2].strip() for line in table] == ["mni", "mni-head"]
