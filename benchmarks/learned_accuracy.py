@@ -20,7 +20,6 @@ from pathlib import Path
 
 import torch
 
-from dpcn_med.geometry import geodesic_distance
 from dpcn_med.models import load_model
 from dpcn_med.options import LEARNING_FREE
 from dpcn_med.solver import solve
@@ -45,9 +44,7 @@ def errors(predict, pairs) -> tuple[list[float], list[float], list[float]]:
             rotation, translation = pose_errors(result, target)
             rotations += rotation.tolist()
             translations += translation.tolist()
-            ranking = getattr(result, "stage", result).ranking
-            nearest = torch.rad2deg(geodesic_distance(ranking.rotation.double(), target.rotation.double()[:, None]))
-            best += nearest.masked_fill(ranking.score == float("-inf"), float("inf")).amin(-1).tolist()
+            best += getattr(result, "stage", result).ranking.errors(target.rotation).amin(-1).tolist()
     return rotations, translations, best
 
 

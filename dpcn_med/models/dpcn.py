@@ -18,7 +18,7 @@ from torch import Tensor, nn
 from dpcn_med import __version__
 from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequence, shown
 from dpcn_med.errors import InputError
-from dpcn_med.geometry import axis_angle_to_matrix, geodesic_distance, warp
+from dpcn_med.geometry import axis_angle_to_matrix, warp
 from dpcn_med.models.features import FeatureExtractor
 from dpcn_med.preprocess import MODALITIES as _INPUT_MODALITIES
 from dpcn_med.preprocess import Preprocessing
@@ -258,9 +258,8 @@ class DPCN(nn.Module):
                 compensation = self._noisy(target, generator, rigid=mode == "rigid").to(fixed.dtype)
             else:
                 compensation = (stage.scale[:, None, None] * stage.rotation).detach()
-            estimate = phase_translation(fixed_translation[:, 0], self._features(
-                "translation_moving", warp(moving, compensation), amp)[:, 0], temperatures.translation, dim=3,
-                taper=self.solver.taper, refine=not self.training, upsample=self.solver.upsample)
+            estimate = self._translation_stage(fixed_translation, self._features(
+                "translation_moving", warp(moving, compensation), amp), temperatures.translation)
             translation = (compensation @ estimate.shift[..., None])[..., 0]
             scores = errors = None
             if truth:
@@ -279,9 +278,7 @@ class DPCN(nn.Module):
         dropped = ranking.score == float("-inf")
         linear = (ranking.scale[..., None, None] * ranking.rotation).detach()
         scores = candidate_scores(fixed[:, 0], moving[:, 0], linear, self.solver.candidate_size, self.solver.taper)
-        errors = torch.rad2deg(geodesic_distance(ranking.rotation.detach().double(),
-                                                 target.rotation.double()[:, None])).to(scores.dtype)
-        return scores.masked_fill(dropped, float("-inf")), errors.masked_fill(dropped, float("inf"))
+        return scores.masked_fill(dropped, float("-inf")), ranking.errors(target.rotation).to(scores.dtype)
 
     def translation_peak(self, fixed: Tensor, moving: Tensor, temperature: Tensor | None = None, amp: bool = False
                          ) -> TranslationEstimate:
@@ -292,9 +289,14 @@ class DPCN(nn.Module):
         fixed, moving = self._grids(fixed, moving)
         with torch.autocast(fixed.device.type, enabled=False):
             temperature = self.temperatures().translation if temperature is None else temperature
-            return phase_translation(self._features("translation_fixed", fixed, amp)[:, 0],
-                                     self._features("translation_moving", moving, amp)[:, 0], temperature, dim=3,
-                                     taper=self.solver.taper, refine=not self.training, upsample=self.solver.upsample)
+            return self._translation_stage(self._features("translation_fixed", fixed, amp),
+                                           self._features("translation_moving", moving, amp), temperature)
+
+    def _translation_stage(self, fixed: Tensor, moving: Tensor, temperature: Tensor) -> TranslationEstimate:
+        """Phase correlation of translation features ``(B, 1, 2B, 2B, 2B)``: refined arg-max in eval mode, soft
+        arg-max in training mode."""
+        return phase_translation(fixed[:, 0], moving[:, 0], temperature, dim=3, taper=self.solver.taper,
+                                 refine=not self.training, upsample=self.solver.upsample)
 
     def _grids(self, fixed: Tensor, moving: Tensor) -> tuple[Tensor, Tensor]:
         """``fixed`` and ``moving`` checked as ``(B, 1, 2B, 2B, 2B)`` pairs, in the parameters' dtype."""

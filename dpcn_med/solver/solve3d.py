@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from dpcn_med.errors import InputError
-from dpcn_med.geometry import half_turns, warp
+from dpcn_med.geometry import geodesic_distance, half_turns, warp
 from dpcn_med.solver.config import SolverConfig, StageTemperatures, override
 from dpcn_med.solver.harmonics import even_degrees, isht, sht
 from dpcn_med.solver.phase_correlation import phase_correlation
@@ -67,6 +67,12 @@ class Ranking:
     rotation: Tensor
     scale: Tensor
     score: Tensor
+
+    def errors(self, truth: Tensor) -> Tensor:
+        """``(batch, K)`` each candidate's angle to ``truth`` ``(batch, 3, 3)``, in degrees (float64, no gradient);
+        ``inf`` where the candidate was dropped."""
+        angles = torch.rad2deg(geodesic_distance(self.rotation.detach().double(), truth.detach().double()[:, None]))
+        return angles.masked_fill(self.score == float("-inf"), float("inf"))
 
 
 @dataclass

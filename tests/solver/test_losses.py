@@ -9,9 +9,8 @@ import pytest
 import torch
 
 from dpcn_med.errors import InputError
-from dpcn_med.geometry import axis_angle_to_matrix, random_rotation
+from dpcn_med.geometry import axis_angle_to_matrix, geodesic_distance, half_turns, random_rotation
 from dpcn_med.solver import LossWeights, PoseTarget, StageTemperatures, Temperatures, pose_loss, solve
-from dpcn_med.geometry import geodesic_distance
 from dpcn_med.solver.losses import rotation_kl, shift_kl, twins
 from dpcn_med.solver.so3 import grid_rotations, so3_log_prob
 from dpcn_med.synth import random_poses
@@ -46,7 +45,6 @@ class TestRotationKL:
         bandwidth = 6
         truth = random_rotation(1, torch.Generator().manual_seed(30))
         index = torch.stack(torch.meshgrid(*[torch.arange(12)] * 3, indexing="ij"), -1).double()
-        from dpcn_med.geometry import geodesic_distance
         correlation = torch.cos(geodesic_distance(grid_rotations(bandwidth, index), truth[0]))[None]
         log_prob = so3_log_prob(correlation, 0.05)
         wrong = truth @ axis_angle_to_matrix(torch.tensor([0.0, math.pi / 2, 0.0], dtype=torch.float64))
@@ -57,7 +55,6 @@ class TestRotationKL:
     def test_twin_aware_target_does_not_penalise_a_half_turn_twin(self):
         bandwidth = 6
         truth = random_rotation(1, torch.Generator().manual_seed(31))
-        from dpcn_med.geometry import geodesic_distance, half_turns
         twin = truth @ half_turns(torch.device("cpu"), torch.float64)[2]  # a half-turn about the fixed grid's y
         index = torch.stack(torch.meshgrid(*[torch.arange(12)] * 3, indexing="ij"), -1).double()
         log_prob = so3_log_prob(torch.cos(geodesic_distance(grid_rotations(bandwidth, index), twin[0]))[None], 0.05)
