@@ -350,3 +350,28 @@ class TestLearnedAccuracy:
             assert cells[-1].endswith("%") and 0.0 <= float(cells[-1][:-1]) <= 100.0
         if "--per-volume" in extra:
             assert [line.split("|")[2].strip() for line in table] == ["mni", "mni-head"]
+
+
+class TestRotationGains:
+    def test_copies_scale_the_rotation_gains_only_and_keep_the_record(self, tmp_path, capsys):
+        from dpcn_med.models import DPCN, ModelConfig, load_model, save_model
+
+        model = DPCN(ModelConfig(bandwidth=8, channels=(4, 8)))
+        for name, gain in (("rotation_fixed", 0.5), ("rotation_moving", 0.25), ("translation_fixed", 0.125)):
+            getattr(model, name).gain.data.fill_(gain)
+        save_model(model, tmp_path / "model", record={"steps": 7})
+        assert script("rotation_gains").main([str(tmp_path / "model.safetensors"), "4", "0.5"]) == 0
+        scaled = load_model(tmp_path / "model_x4")
+        assert [getattr(scaled, name).gain.item() for name in ("rotation_fixed", "rotation_moving",
+                                                                 "translation_fixed")] == [2.0, 1.0, 0.125]
+        assert load_model(tmp_path / "model_x0.5").rotation_fixed.gain.item() == 0.25
+        for name, tensor in model.state_dict().items():
+            if not name.endswith(".gain"):
+                torch.testing.assert_close(scaled.state_dict()[name], tensor)
+        record = json.loads((tmp_path / "model_x4.json").read_text())["record"]
+        assert record == {"steps": 7, "rotation_gains_scaled_by": 4.0}
+        assert "model_x4: gains rotation_fixed 2" in capsys.readouterr().out
+
+    def test_a_factor_must_be_positive(self, tmp_path):
+        with pytest.raises(SystemExit):
+            script("rotation_gains").main([str(tmp_path / "model"), "0"])

@@ -28,6 +28,7 @@ from dpcn_med.preprocess import Preprocessing
 from dpcn_med.solver import LossWeights, SolverConfig
 from dpcn_med.synth import PairConfig
 from dpcn_med.train.folders import check_crop
+from dpcn_med.train.pretrain import PretrainConfig
 
 
 @dataclass(frozen=True)
@@ -123,6 +124,8 @@ class TrainConfig:
         optimiser: the optimisation.
         loss: the weights and targets of the training terms (:class:`dpcn_med.solver.LossWeights`; the rotation
             width in radians).
+        pretrain: dense pretraining of the rotation-stage networks over the first steps
+            (:class:`dpcn_med.train.pretrain.PretrainConfig`; none by default).
         seed: of the pairs and the initial weights (each rank, and each resumed start, draws its own stream of
             synthetic pairs; rank ``r`` crops each folder's real pairs with a seed drawn from ``seed + r`` and the
             folder's place in the list).
@@ -137,6 +140,7 @@ class TrainConfig:
     data: DataConfig = field(default_factory=DataConfig)
     optimiser: OptimiserConfig = field(default_factory=OptimiserConfig)
     loss: LossWeights = field(default_factory=LossWeights)
+    pretrain: PretrainConfig = field(default_factory=PretrainConfig)
     seed: int = 0
     device: str = "auto"
     log_every: int = 10
@@ -151,6 +155,9 @@ class TrainConfig:
         if not isinstance(self.device, str) or not re.fullmatch(r"auto|cpu|cuda(:\d+)?", self.device):
             # the names only: whether this machine has the GPU is for distributed.start
             raise InputError(f"device is {self.device!r}; expected auto, cpu, cuda or cuda:N")
+        if self.pretrain.steps > self.optimiser.steps:
+            raise InputError(f"pretrain.steps is {self.pretrain.steps}; expected at most optimiser.steps "
+                             f"({self.optimiser.steps}), the run's steps in all")
         for name in ("log_every", "validate_every", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise InputError(f"{name} is {getattr(self, name)}; expected a number of steps >= 1")

@@ -34,12 +34,13 @@ from dpcn_med.train.checkpoint import load_checkpoint, save_checkpoint
 from dpcn_med.train.config import TrainConfig
 from dpcn_med.train.data import sample_pairs, validation_set, volume_bank
 from dpcn_med.train.folders import FolderPairs, collate_pairs, derived_seed
+from dpcn_med.train.pretrain import dense_loss, set_pretrained_gains
 
 SUCCESS_DEGREES, SUCCESS_VOXELS = 5.0, 2.0
 """A registration succeeds within 5 degrees and 2 voxels (the learning issue's criterion)."""
 
 LOSS_TERMS = ("total", "rotation_kl", "rotation_l1", "scale_kl", "scale_l1", "translation_kl", "translation_l1",
-              "candidate_ranking")
+              "candidate_ranking", "dense_ncc", "pose_contrast")
 CANDIDATE_ERRORS = ("chosen_error_deg", "best_candidate_error_deg")
 """Logged with the training terms (batch medians): the rotation error of the candidate the model chose, and of the
 candidate nearest the truth among all it ranked: the choice's error against the best it could have made."""
@@ -265,7 +266,8 @@ def _steps(run: _Run, step: int) -> tuple[int, float]:
         rate = learning_rate(step, config)
         for group in run.optimiser.param_groups:
             group["lr"] = rate
-        terms, finite = _descend(run, *_batch(run, step), amp)
+        batch = _batch(run, step)
+        terms, finite = _descend(run, *batch, amp, pretraining=step < config.pretrain.steps)
         if finite:
             skipped_in_a_row = 0
         else:
@@ -276,6 +278,8 @@ def _steps(run: _Run, step: int) -> tuple[int, float]:
                                  f"step {step + 1}); the training has diverged: lower optimiser.learning_rate, or "
                                  "check the training volumes for empty or constant ones")
         step += 1
+        if step == config.pretrain.steps:
+            _end_pretraining(run, batch, bar)
         pairs_since += config.optimiser.batch_size * process.world_size
         bar.update(1)
         if step % config.log_every == 0 or step == config.optimiser.steps:
@@ -304,16 +308,31 @@ def _batch(run: _Run, step: int) -> tuple[Tensor, Tensor, PoseTarget]:
     return sample_pairs(run.bank, config.optimiser.batch_size, generator, config.data.pair)
 
 
-def _descend(run: _Run, fixed: Tensor, moving: Tensor, target: PoseTarget, amp: bool
+def _descend(run: _Run, fixed: Tensor, moving: Tensor, target: PoseTarget, amp: bool, pretraining: bool = False
              ) -> tuple[dict[str, Tensor], bool]:
-    """One optimiser step on a batch: ``(loss terms, whether the gradients were finite and the step was taken)``."""
-    result = run.network(fixed, moving, target, generator=run.generator, amp=amp)
-    terms = pose_loss(result, target, run.config.loss)
-    terms["chosen_error_deg"] = torch.rad2deg(geodesic_distance(result.rotation.detach().double(),
-                                                                target.rotation.double())).median()
-    terms["best_candidate_error_deg"] = result.candidate_errors.min(-1).values.median()
+    """One optimiser step on a batch: ``(loss terms, whether the gradients were finite and the step was taken)``;
+    the pose loss, or while ``pretraining`` the dense loss of :mod:`dpcn_med.train.pretrain` (no solver)."""
+    if pretraining:
+        terms = dense_loss(run.model, fixed, moving, target, run.config.pretrain, amp=amp, generator=run.generator)
+        nan = torch.tensor(float("nan"), device=fixed.device)
+        terms = {**{name: torch.zeros((), device=fixed.device) for name in LOSS_TERMS},
+                 **{name: nan for name in CANDIDATE_ERRORS}, **terms}
+    else:
+        result = run.network(fixed, moving, target, generator=run.generator, amp=amp)
+        terms = pose_loss(result, target, run.config.loss)
+        terms["dense_ncc"] = terms["pose_contrast"] = torch.zeros((), device=fixed.device)
+        terms["chosen_error_deg"] = torch.rad2deg(geodesic_distance(result.rotation.detach().double(),
+                                                                    target.rotation.double())).median()
+        terms["best_candidate_error_deg"] = result.candidate_errors.min(-1).values.median()
     run.optimiser.zero_grad(set_to_none=True)
     terms["total"].backward()
+    if pretraining and run.process.distributed:
+        # The dense loss calls the extractors, not the DistributedDataParallel wrapper, which would sync the
+        # gradients: average them here, as it would.
+        for parameter in run.model.parameters():
+            if parameter.grad is not None:
+                dist.all_reduce(parameter.grad)
+                parameter.grad /= run.process.world_size
     # One non-finite gradient (a degenerate pair: an empty crop, a constant volume) would make every weight NaN
     # at the step; such a step is skipped, and counted (its gradients are all-reduced: every process agrees).
     gradient_clip = run.config.optimiser.gradient_clip
@@ -322,6 +341,20 @@ def _descend(run: _Run, fixed: Tensor, moving: Tensor, target: PoseTarget, amp: 
         run.optimiser.step()
         return terms, True
     return terms, False
+
+
+def _end_pretraining(run: _Run, batch: tuple[Tensor, Tensor, PoseTarget], bar: Any) -> None:
+    """Give the pretrained extractors their gains (:func:`dpcn_med.train.pretrain.set_pretrained_gains`) on the last
+    pretraining batch, averaged over the processes so that every rank keeps the same weights."""
+    fixed, moving, _ = batch
+    set_pretrained_gains(run.model, fixed, moving, run.config.pretrain)
+    if run.process.distributed:
+        for name in ("rotation_fixed", "rotation_moving"):
+            gain = getattr(run.model, name).gain.data
+            dist.all_reduce(gain)
+            gain /= run.process.world_size
+    bar.write("pretraining done: gains " + ", ".join(
+        f"{name} {getattr(run.model, name).gain.item():.3g}" for name in ("rotation_fixed", "rotation_moving")))
 
 
 def _train_row(run: _Run, step: int, rate: float, terms: dict[str, Tensor], skipped: int, pairs_per_second: float
