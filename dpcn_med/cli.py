@@ -63,7 +63,7 @@ def _registration_options() -> argparse.ArgumentParser:
                          help="with --no-refine (no success probability): exit with code 3 below this solver "
                          f"confidence (default {MIN_CONFIDENCE})")
     options.add_argument("--no-overview", dest="overview", action="store_false",
-                         help="do not draw overview.png (saves about a second: matplotlib's import and the drawing)")
+                         help="do not draw overview.png (saves about a third of a second on a 1 mm head)")
     options.add_argument("--no-resampled", dest="resampled", action="store_false",
                          help="do not write moving_resampled.nii.gz")
     options.add_argument("--progress", choices=("auto", "json"), default="auto",

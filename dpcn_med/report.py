@@ -19,8 +19,6 @@ from dpcn_med.geometry import grid_centre, slicer_to_parent_ras
 from dpcn_med.preprocess import foreground_box, foreground_mask, histogram_values
 
 if TYPE_CHECKING:
-    from matplotlib.axes import Axes
-
     from dpcn_med.outputs import RegistrationSettings
     from dpcn_med.registration import RegistrationResult
 
@@ -43,6 +41,8 @@ PLANE_EDGE_LABELS: dict[str, tuple[str, str, str, str]] = {
 OVERVIEW_ROWS = ("before (as stored)", "after registration", "after: checkerboard")
 OVERVIEW_PIXELS = 256
 OVERVIEW_WIDTH_PX = 1500
+OVERVIEW_PNG_COMPRESSION = 3
+"""zlib level of the overview PNG (Pillow's default 6 takes about twice as long for a file a few percent smaller)."""
 CHECKER_SQUARES = 8
 """Squares along each side of the checkerboard panels."""
 WINDOW_PERCENTILES = (1.0, 99.0)
@@ -197,8 +197,6 @@ def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
         if image.GetDimension() != 3:
             raise InputError(f"{name} image is {image.GetDimension()}-D (size {image.GetSize()}); the overview "
                              "needs 3-D volumes")
-    from matplotlib.figure import Figure  # imported here: matplotlib takes a noticeable time to import
-
     from dpcn_med.io import atomic_output
 
     fixed_small, moving_small = _subsampled(fixed), _subsampled(moving)
@@ -212,50 +210,68 @@ def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
     levels = _contour_levels(moving_small)
 
     planes = overview_planes(fixed, moving, fixed_to_moving, centre, extent)
-
-    columns, rows = len(PLANE_AXES), len(OVERVIEW_ROWS)
-    width_in = 10.0
-    figure = Figure(figsize=(width_in, width_in * (rows + 0.35) / (columns + 0.15)), facecolor="black")
-    figure.subplots_adjust(left=0.05, right=0.995, bottom=0.005, top=1 - 0.35 / (rows + 0.35), wspace=0.03,
-                           hspace=0.03)
-    _draw_panels(figure.subplots(rows, columns, squeeze=False), planes, (fixed_window, moving_window), levels)
     centre_text = ", ".join(f"{c:.1f}" for c in centre)
     subtitle = f"planes through ({centre_text}) mm LPS, field of view {extent:.0f} mm"
-    # parse_math off: a file name holding two $ was read as TeX and a parse error lost the whole registration.
-    figure.suptitle(f"{title}\n{subtitle}" if title else subtitle, color="white", fontsize=13, parse_math=False)
+    figure = _overview_canvas(planes, (fixed_window, moving_window), levels,
+                              f"{title}\n{subtitle}" if title else subtitle)
     with atomic_output(path) as temporary:
-        figure.savefig(temporary, format="png", dpi=OVERVIEW_WIDTH_PX / width_in, facecolor="black")
+        figure.save(temporary, format="PNG", compress_level=OVERVIEW_PNG_COMPRESSION)
 
 
-def _draw_panels(axes: np.ndarray, planes: tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]],
-                 windows: tuple[tuple[float, float], tuple[float, float]], levels: Sequence[float]) -> None:
-    """The overview's panels (:data:`OVERVIEW_ROWS` by :data:`PLANE_AXES`) into ``axes``, with their labels.
+def _font(size: int):
+    """Pillow's built-in scalable font at ``size`` pixels (its bitmap font where Pillow has no FreeType)."""
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)
+    except (TypeError, ImportError):  # Pillow < 10.1, or built without FreeType
+        return ImageFont.load_default()
+
+
+def _overview_canvas(planes: tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]],
+                     windows: tuple[tuple[float, float], tuple[float, float]], levels: Sequence[float], title: str):
+    """The overview as a Pillow RGB image :data:`OVERVIEW_WIDTH_PX` wide: the title, then :data:`OVERVIEW_ROWS` by
+    :data:`PLANE_AXES` panels, drawn with Pillow (why not matplotlib: docs/design_notes/report.md).
 
     Args:
-        axes: ``(rows, columns)`` matplotlib axes.
         planes: ``(fixed, before, after)`` of :func:`overview_planes`.
         windows: the display windows of the fixed and the moving image (:func:`_window`).
         levels: the moving image's contour levels (:func:`_contour_levels`).
+        title: one or two lines above the panels.
     """
+    from PIL import Image, ImageDraw
+
     fixed_planes, before, after = planes
     fixed_window, moving_window = windows
+    columns, rows = len(PLANE_AXES), len(OVERVIEW_ROWS)
+    margin, gap, heading = 44, 6, 30
+    panel = (OVERVIEW_WIDTH_PX - margin - gap * columns) // columns
+    title_height = 30 + 26 * title.count("\n")
+    top = title_height + heading
+    canvas = Image.new("RGB", (OVERVIEW_WIDTH_PX, top + rows * (panel + gap)), "black")
+    draw = ImageDraw.Draw(canvas)
+    draw.multiline_text((OVERVIEW_WIDTH_PX // 2, 8), title, fill="white", font=_font(22), anchor="ma",
+                        align="center")
+    labels = _font(17)
     for column, plane_name in enumerate(PLANE_AXES):
+        left = margin + column * (panel + gap)
+        draw.text((left + panel // 2, top - 6), plane_name, fill="white", font=_font(20), anchor="mb")
         fixed_grey = _normalised(fixed_planes[column], fixed_window)
-        for row, moving_plane in enumerate((before[column], after[column])):
-            axes[row, column].imshow(fixed_grey, cmap="gray", vmin=0.0, vmax=1.0, interpolation="nearest")
-            _draw_contours(axes[row, column], moving_plane, levels)
-        axes[2, column].imshow(_checkerboard(fixed_grey, _normalised(after[column], moving_window)), cmap="gray",
-                               vmin=0.0, vmax=1.0, interpolation="nearest")
-        axes[0, column].set_title(plane_name, color="white", fontsize=12)
-        for row in range(len(OVERVIEW_ROWS)):
-            _label_edges(axes[row, column], PLANE_EDGE_LABELS[plane_name])
+        shown = [(fixed_grey, before[column]), (fixed_grey, after[column]),
+                 (_checkerboard(fixed_grey, _normalised(after[column], moving_window)), None)]
+        for row, (grey, contoured) in enumerate(shown):
+            corner = (left, top + row * (panel + gap))
+            image = Image.fromarray(np.round(255 * grey).astype(np.uint8)).resize((panel, panel), Image.NEAREST)
+            canvas.paste(image.convert("RGB"), corner)
+            if contoured is not None:
+                _draw_contours(draw, contoured, levels, corner, panel / contoured.shape[1])
+            _label_edges(draw, corner, panel, PLANE_EDGE_LABELS[plane_name], labels)
+            draw.rectangle((corner[0] - 1, corner[1] - 1, corner[0] + panel, corner[1] + panel), outline="#555555")
     for row, label in enumerate(OVERVIEW_ROWS):
-        axes[row, 0].set_ylabel(label, color="white", fontsize=12)
-    for ax in axes.flat:
-        ax.set_xticks([])
-        ax.set_yticks([])
-        for spine in ax.spines.values():
-            spine.set_color("#555555")
+        text = Image.new("RGB", (panel, margin - 8), "black")
+        ImageDraw.Draw(text).text((panel // 2, (margin - 8) // 2), label, fill="white", font=_font(20), anchor="mm")
+        canvas.paste(text.rotate(90, expand=True), (2, top + row * (panel + gap)))
+    return canvas
 
 
 def _subsampled(image: sitk.Image) -> sitk.Image:
@@ -288,17 +304,27 @@ def _contour_levels(image: sitk.Image) -> list[float]:
     return sorted(set(otsu.GetThresholds()))  # a two-valued image gives repeated thresholds
 
 
-def _draw_contours(ax: Axes, plane: np.ndarray, levels: Sequence[float]) -> None:
-    """Contours of ``plane`` at ``levels`` in :data:`CONTOUR_COLOURS`, skipping levels the plane never crosses."""
-    finite = plane[np.isfinite(plane)]
-    if finite.size == 0:
+def _draw_contours(draw, plane: np.ndarray, levels: Sequence[float], corner: tuple[int, int], zoom: float
+                   ) -> None:
+    """Contours of ``plane`` at ``levels`` in :data:`CONTOUR_COLOURS` onto a Pillow ``draw``, the plane shown from
+    ``corner`` (pixels) at ``zoom`` pixels per plane pixel; levels the plane never crosses, and NaN (outside the image),
+    draw nothing."""
+    import contourpy  # matplotlib's own contouring, without matplotlib
+
+    finite = np.isfinite(plane)
+    if not finite.any():
         return
-    low, high = float(finite.min()), float(finite.max())
-    # matplotlib warns and draws a spurious level when none lies inside the data range.
-    inside = [(level, colour) for level, colour in zip(levels, CONTOUR_COLOURS) if low < level < high]
-    if inside:
-        ax.contour(plane, levels=[level for level, _ in inside], colors=[colour for _, colour in inside],
-                   linewidths=0.9)
+    generator = contourpy.contour_generator(z=np.ma.masked_array(np.nan_to_num(plane), mask=~finite),
+                                            line_type=contourpy.LineType.Separate)
+    low, high = float(plane[finite].min()), float(plane[finite].max())
+    for level, colour in zip(levels, CONTOUR_COLOURS):
+        if not low < level < high:
+            continue
+        for line in generator.lines(level):
+            # Pixel (row, column) of the plane covers [column, column + 1) x [row, row + 1) of the panel, in plane
+            # pixels: its centre is at + 0.5.
+            points = ((line + 0.5) * zoom + np.asarray(corner)).ravel().tolist()
+            draw.line(points, fill=colour, width=2)
 
 
 def _checkerboard(first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -309,15 +335,13 @@ def _checkerboard(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     return np.where(parity == 0, first, second)
 
 
-def _label_edges(ax: Axes, labels: tuple[str, str, str, str]) -> None:
-    """Patient directions at the (left, right, top, bottom) edges of a panel."""
-    from matplotlib import patheffects
-
-    # A dark outline keeps the letters readable on white checkerboard squares.
-    style = {"color": "#9fd0ff", "fontsize": 9, "transform": ax.transAxes,
-             "path_effects": [patheffects.withStroke(linewidth=2, foreground="black")]}
+def _label_edges(draw, corner: tuple[int, int], panel: int, labels: tuple[str, str, str, str], font) -> None:
+    """Patient directions at the (left, right, top, bottom) edges of the panel of side ``panel`` at ``corner``; a dark
+    outline keeps the letters readable on white checkerboard squares."""
+    x, y = corner
     left, right, top, bottom = labels
-    ax.text(0.01, 0.5, left, ha="left", va="center", **style)
-    ax.text(0.99, 0.5, right, ha="right", va="center", **style)
-    ax.text(0.5, 0.99, top, ha="center", va="top", **style)
-    ax.text(0.5, 0.01, bottom, ha="center", va="bottom", **style)
+    style = {"fill": "#9fd0ff", "font": font, "stroke_width": 2, "stroke_fill": "black"}
+    draw.text((x + 4, y + panel // 2), left, anchor="lm", **style)
+    draw.text((x + panel - 4, y + panel // 2), right, anchor="rm", **style)
+    draw.text((x + panel // 2, y + 3), top, anchor="mt", **style)
+    draw.text((x + panel // 2, y + panel - 3), bottom, anchor="mb", **style)
