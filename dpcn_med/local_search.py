@@ -159,6 +159,10 @@ def fixed_samples(fixed: Volume, mask: sitk.Image | None, count: int, bins: int,
     # Each sample moves off its voxel's centre by up to half a voxel, as ITK's random sampling does: on the voxel
     # centres, mutual information prefers poses that align the two grids (interpolation blurs the others).
     jitter = torch.rand(len(index), 3, generator=generator, dtype=torch.float64) - 0.5
+    # The same samples in raster order: mapped by a pose, neighbours stay neighbours in the moving image, whose reads
+    # then hit the cache (the metric's sampling took half the refinement in random order).
+    order = torch.argsort(index, stable=True)
+    index, jitter = index[order], jitter[order]
     size = fixed.size
     voxel = torch.stack([index % size[0], (index // size[0]) % size[1], index // (size[0] * size[1])], dim=1)
     to_physical = torch.as_tensor(fixed.index_to_physical())
@@ -185,12 +189,28 @@ def with_gradient(image: Volume) -> Volume:
     :func:`sample`'s normalised coordinates: :func:`sample` then interpolates the gradient at each point, as ITK's
     metric does, instead of differentiating the trilinear interpolant, whose derivative jumps at every voxel face."""
     values = image.values[0, 0]
-    # torch.gradient: central differences inside, one-sided at the edges; along z, y, x (the tensor's order).
-    gradients = torch.gradient(values, dim=(0, 1, 2))
-    scale = (np.maximum(image.size - 1, 1) / 2)[::-1]  # d(index)/d(normalised) along z, y, x
-    channels = [values] + [gradients[2 - axis] * float(scale[2 - axis]) for axis in range(3)]  # then x, y, z
-    return Volume(values=torch.stack(channels)[None], origin=image.origin, spacing=image.spacing,
-                  direction=image.direction)
+    scale = np.maximum(image.size - 1, 1) / 2  # d(index)/d(normalised) along x, y, z
+    # Central differences inside, one-sided at the edges (torch.gradient's), written straight into the four channels:
+    # torch.gradient and a stack allocated and copied three more volumes, a tenth of a second on a 1 mm head.
+    # Channels last: the four values a sample reads at each corner sit side by side in memory (a third faster).
+    channels = torch.empty((1, 4, *values.shape), dtype=values.dtype, device=values.device,
+                           memory_format=torch.channels_last_3d)
+    channels[0, 0] = values
+    for axis in range(3):  # x, y, z: the tensor's dimensions 2, 1, 0
+        dim = 2 - axis
+        out = channels[0, 1 + axis]
+        if values.shape[dim] < 2:
+            out.zero_()
+            continue
+        length = values.shape[dim]
+        inner, low, high = (out.narrow(dim, 1, length - 2), out.narrow(dim, 0, 1), out.narrow(dim, length - 1, 1))
+        torch.sub(values.narrow(dim, 2, length - 2), values.narrow(dim, 0, length - 2), out=inner)
+        inner.mul_(0.5 * float(scale[axis]))
+        torch.sub(values.narrow(dim, 1, 1), values.narrow(dim, 0, 1), out=low)
+        torch.sub(values.narrow(dim, length - 1, 1), values.narrow(dim, length - 2, 1), out=high)
+        low.mul_(float(scale[axis]))
+        high.mul_(float(scale[axis]))
+    return Volume(values=channels, origin=image.origin, spacing=image.spacing, direction=image.direction)
 
 
 class _SmoothGradientSample(torch.autograd.Function):
