@@ -4,13 +4,12 @@ For a synthetic pair ``fixed(p) ~ moving(A p + t)`` (two simulated modalities of
 SO(3) on its own), each side's rotation-stage UNet maps its volume to a feature grid; the moving side's features are
 warped back into the fixed frame with the true pose, both are band-passed to the frequencies the solver's sphere
 reads, and the loss is one minus their normalised cross-correlation (NCC) inside the eroded overlap of the two
-foregrounds. At the end of pretraining each pretrained extractor takes a gain that makes its UNet term dominate the
-raw volume, which is modality-specific (:func:`set_pretrained_gains`).
+foregrounds; optionally plus a pose contrast (:func:`pose_contrast`): the NCC at the true pose must stand out from
+the NCC at decoy poses. At the end of pretraining each pretrained extractor takes a gain that makes its UNet term
+outweigh the raw volume, which is modality-specific (:func:`set_pretrained_gains`).
 
-Why each choice (../shared/LEARNING.md, "Pitfalls for a dense cross-modal objective"): NCC, not a cosine of one
-channel (which is +-1); the band-pass and the erosion, so that the cheap, nearly symmetric, modality-invariant answer
-(the foreground mask and its outline) earns nothing; the moving side turned on its own and warped back, so that a
-feature cannot encode grid position (a shortcut the padding allows).
+Why each choice, and what each measured: docs/learning.md ("Dense pretraining of the rotation features") and
+../shared/LEARNING.md ("Pitfalls for a dense cross-modal objective").
 
 Convention:
     Grids ``(B, 1, N, N, N)`` in the solver's order (z, y, x) and the pose convention of :mod:`dpcn_med.geometry`
@@ -152,17 +151,10 @@ def decoy_poses(linear: Tensor, near_degrees: float = 0.0) -> list[Tensor]:
     return poses
 
 
-def pose_contrast(fixed_features: Tensor, moving_features: Tensor, fixed: Tensor, moving: Tensor,
-                  target: PoseTarget, config: PretrainConfig = PretrainConfig(),
-                  generator: torch.Generator | None = None) -> Tensor:
-    """``(B,)`` cross-entropy of the true pose among it and its :func:`decoy_poses` (``config.decoys`` of them drawn
-    with ``generator``, the same for the whole batch, when that is not 0), by their :func:`dense_similarity` over
-    ``config.contrast_temperature``.
-
-    Features that agree as well at a twin (the foreground's outline, a nearly symmetric head) leave the solver's choice
-    to chance, and features that agree as well a few degrees off (smooth ones) leave its rotation vague: this term
-    gives neither anything.
-    """
+def _pose_similarities(fixed_features: Tensor, moving_features: Tensor, fixed: Tensor, moving: Tensor,
+                       target: PoseTarget, config: PretrainConfig, generator: torch.Generator | None) -> Tensor:
+    """``(B, 1 + D)``: :func:`dense_similarity` at the true pose, then at ``D`` of its :func:`decoy_poses`
+    (``config.decoys`` of them drawn with ``generator``, the same for the whole batch, when that is not 0)."""
     linear = (target.scale[:, None, None] * target.rotation).to(moving_features.dtype)
     fixed_band = band_pass(fixed_features, config.band)
     shift = target.translation.to(moving_features.dtype)
@@ -171,9 +163,23 @@ def pose_contrast(fixed_features: Tensor, moving_features: Tensor, fixed: Tensor
         drawn = torch.randperm(len(decoys), generator=generator, device="cpu" if generator is None else
                                generator.device)[:config.decoys]
         decoys = [decoys[int(index)] for index in drawn]
-    similarities = torch.stack([_similarity(fixed_band, moving_features, fixed, moving, pose, shift, config)
-                                for pose in [linear, *decoys]], 1)
+    return torch.stack([_similarity(fixed_band, moving_features, fixed, moving, pose, shift, config)
+                        for pose in [linear, *decoys]], 1)
+
+
+def _contrast(similarities: Tensor, config: PretrainConfig) -> Tensor:
     return -torch.log_softmax(similarities / config.contrast_temperature, 1)[:, 0]
+
+
+def pose_contrast(fixed_features: Tensor, moving_features: Tensor, fixed: Tensor, moving: Tensor,
+                  target: PoseTarget, config: PretrainConfig = PretrainConfig(),
+                  generator: torch.Generator | None = None) -> Tensor:
+    """``(B,)`` cross-entropy of the true pose among it and its :func:`decoy_poses` (``config.decoys`` of them drawn
+    with ``generator``, the same for the whole batch, when that is not 0), by their :func:`dense_similarity` over
+    ``config.contrast_temperature``: features that agree as well at a twin or a few degrees off score no better than
+    chance."""
+    return _contrast(_pose_similarities(fixed_features, moving_features, fixed, moving, target, config, generator),
+                     config)
 
 
 def dense_loss(model: torch.nn.Module, fixed: Tensor, moving: Tensor, target: PoseTarget,
@@ -187,9 +193,12 @@ def dense_loss(model: torch.nn.Module, fixed: Tensor, moving: Tensor, target: Po
     with torch.autocast(fixed.device.type, dtype=torch.bfloat16, enabled=amp):
         fixed_features, moving_features = model.rotation_fixed.unet(fixed), model.rotation_moving.unet(moving)
     fixed_features, moving_features = fixed_features.to(fixed.dtype), moving_features.to(moving.dtype)
-    similarity = dense_similarity(fixed_features, moving_features, fixed, moving, target, config).mean()
-    contrast = (pose_contrast(fixed_features, moving_features, fixed, moving, target, config, generator).mean()
-                if config.contrast_weight > 0 else torch.zeros((), device=fixed.device))
+    if config.contrast_weight > 0:  # the truth's similarity is the first of the contrast's: one warp, not two
+        similarities = _pose_similarities(fixed_features, moving_features, fixed, moving, target, config, generator)
+        similarity, contrast = similarities[:, 0].mean(), _contrast(similarities, config).mean()
+    else:
+        similarity = dense_similarity(fixed_features, moving_features, fixed, moving, target, config).mean()
+        contrast = torch.zeros((), device=fixed.device)
     return {"total": 1 - similarity + config.contrast_weight * contrast, "dense_ncc": similarity,
             "pose_contrast": contrast}
 
