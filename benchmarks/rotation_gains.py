@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 
 from dpcn_med.models import load_model, save_model
-from dpcn_med.train.pretrain import PRETRAINED_EXTRACTORS
+from dpcn_med.train.pretrain import PRETRAINED_EXTRACTORS, pretrained_extractors
 
 
 def positive(text: str) -> float:
@@ -32,9 +32,9 @@ def main(argv: list[str] | None = None) -> int:
     stem = args.model.with_suffix("") if args.model.suffix in (".safetensors", ".json") else args.model
     for factor in args.factors:
         model = load_model(stem)
-        extractors = {name: getattr(model, name) for name in PRETRAINED_EXTRACTORS}
-        for extractor in {id(e): e for e in extractors.values()}.values():  # one, when the weights are shared
+        for extractor in pretrained_extractors(model).values():  # one, when the weights are shared
             extractor.gain.data *= factor
+        extractors = {name: getattr(model, name) for name in PRETRAINED_EXTRACTORS}
         target = stem.with_name(f"{stem.name}_x{factor:g}")
         record = json.loads(stem.with_suffix(".json").read_text(encoding="utf-8")).get("record", {})
         save_model(model, target, record={**record, "rotation_gains_scaled_by": factor})

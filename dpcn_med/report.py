@@ -252,10 +252,10 @@ def _overview_canvas(planes: tuple[list[np.ndarray], list[np.ndarray], list[np.n
     draw = ImageDraw.Draw(canvas)
     draw.multiline_text((OVERVIEW_WIDTH_PX // 2, 8), title, fill="white", font=_font(22), anchor="ma",
                         align="center")
-    labels = _font(17)
+    labels, headings = _font(17), _font(20)
     for column, plane_name in enumerate(PLANE_AXES):
         left = margin + column * (panel + gap)
-        draw.text((left + panel // 2, top - 6), plane_name, fill="white", font=_font(20), anchor="mb")
+        draw.text((left + panel // 2, top - 6), plane_name, fill="white", font=headings, anchor="mb")
         fixed_grey = _normalised(fixed_planes[column], fixed_window)
         shown = [(fixed_grey, before[column]), (fixed_grey, after[column]),
                  (_checkerboard(fixed_grey, _normalised(after[column], moving_window)), None)]
@@ -269,7 +269,7 @@ def _overview_canvas(planes: tuple[list[np.ndarray], list[np.ndarray], list[np.n
             draw.rectangle((corner[0] - 1, corner[1] - 1, corner[0] + panel, corner[1] + panel), outline="#555555")
     for row, label in enumerate(OVERVIEW_ROWS):
         text = Image.new("RGB", (panel, margin - 8), "black")
-        ImageDraw.Draw(text).text((panel // 2, (margin - 8) // 2), label, fill="white", font=_font(20), anchor="mm")
+        ImageDraw.Draw(text).text((panel // 2, (margin - 8) // 2), label, fill="white", font=headings, anchor="mm")
         canvas.paste(text.rotate(90, expand=True), (2, top + row * (panel + gap)))
     return canvas
 

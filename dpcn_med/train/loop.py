@@ -34,7 +34,7 @@ from dpcn_med.train.checkpoint import load_checkpoint, save_checkpoint
 from dpcn_med.train.config import TrainConfig
 from dpcn_med.train.data import sample_pairs, validation_set, volume_bank
 from dpcn_med.train.folders import FolderPairs, collate_pairs, derived_seed
-from dpcn_med.train.pretrain import dense_loss, set_pretrained_gains
+from dpcn_med.train.pretrain import dense_loss, pretrained_extractors, set_pretrained_gains
 
 SUCCESS_DEGREES, SUCCESS_VOXELS = 5.0, 2.0
 """A registration succeeds within 5 degrees and 2 voxels (the learning issue's criterion)."""
@@ -348,13 +348,13 @@ def _end_pretraining(run: _Run, batch: tuple[Tensor, Tensor, PoseTarget], bar: A
     pretraining batch, averaged over the processes so that every rank keeps the same weights."""
     fixed, moving, _ = batch
     set_pretrained_gains(run.model, fixed, moving, run.config.pretrain)
+    extractors = pretrained_extractors(run.model)
     if run.process.distributed:
-        for name in ("rotation_fixed", "rotation_moving"):
-            gain = getattr(run.model, name).gain.data
-            dist.all_reduce(gain)
-            gain /= run.process.world_size
+        for extractor in extractors.values():
+            dist.all_reduce(extractor.gain.data)
+            extractor.gain.data /= run.process.world_size
     bar.write("pretraining done: gains " + ", ".join(
-        f"{name} {getattr(run.model, name).gain.item():.3g}" for name in ("rotation_fixed", "rotation_moving")))
+        f"{name} {extractor.gain.item():.3g}" for name, extractor in extractors.items()))
 
 
 def _train_row(run: _Run, step: int, rate: float, terms: dict[str, Tensor], skipped: int, pairs_per_second: float

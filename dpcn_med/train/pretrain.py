@@ -31,6 +31,14 @@ from dpcn_med.solver import PoseTarget
 
 PRETRAINED_EXTRACTORS = ("rotation_fixed", "rotation_moving")
 """The extractors pretraining trains (a model with shared weights has one)."""
+
+
+def pretrained_extractors(model: torch.nn.Module) -> dict[str, torch.nn.Module]:
+    """``model``'s distinct :data:`PRETRAINED_EXTRACTORS` by name: one entry when the two share their weights."""
+    distinct: dict[int, tuple[str, torch.nn.Module]] = {}
+    for name in PRETRAINED_EXTRACTORS:
+        distinct.setdefault(id(getattr(model, name)), (name, getattr(model, name)))
+    return dict(distinct.values())
 EPSILON = 1e-6
 """Added to the NCC's variances: a feature grid constant over the overlap correlates with nothing."""
 
