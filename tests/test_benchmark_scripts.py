@@ -40,6 +40,7 @@ class TestCounts:
         ("candidate_cost", ["--repeats", "0"], "argument --repeats: 0 is too few"),
         ("slicer_time", ["--repeats", "0"], "argument --repeats: 0 is too few"),
         ("mridir_reference", ["--starts", "0"], "argument --starts: 0 is too few"),
+        ("heldout_factors", ["--config", "x.yaml", "--pairs", "1"], "argument --pairs: 1 is too few; give at least 2"),
         ("mridir_reference", ["--rotations", "-1"], "argument --rotations: -1 is too few; give at least 0"),
         ("partial_fov", ["--trials", "0"], "argument --trials: 0 is too few"),
         ("partial_fov", ["--baseline-trials", "-1"], "argument --baseline-trials: -1 is too few"),
@@ -375,3 +376,21 @@ class TestRotationGains:
     def test_a_factor_must_be_positive(self, tmp_path):
         with pytest.raises(SystemExit):
             script("rotation_gains").main([str(tmp_path / "model"), "0"])
+
+
+class TestHeldoutFactors:
+    def test_each_row_changes_one_factor_of_the_pairs(self):
+        from dpcn_med.synth import PairConfig
+        from dpcn_med.synth.contrast import ContrastConfig
+
+        base = PairConfig(crop_probability=0.3)
+        rows = script("heldout_factors").variants(base)
+        assert rows["as benchmarked (learned_accuracy.py)"] == base
+        assert rows["no slab crop"] == PairConfig(crop_probability=0.0)
+        identity = rows["same contrast on both sides (identity)"]
+        assert (identity.fixed_modality, identity.moving_modality) == ("identity", "identity")
+        thick = rows["monotonic map and thick slices alone"]
+        assert thick.fixed_contrast == thick.moving_contrast == ContrastConfig(
+            monotonic=True, bias_strength=0.0, sigma_range=(0.0, 0.0), noise_std_range=(0.0, 0.0))
+        assert rows["non-monotonic intensity map alone"].fixed_contrast.factor_range == (1.0, 1.0)
+        assert not rows["non-monotonic intensity map alone"].fixed_contrast.monotonic

@@ -36,6 +36,9 @@ PER_CALL_SOLVER_FIELDS = ("bandwidth", "refine", "alternatives", "profile")
 REQUIRED_KEYS = ("bandwidth", "channels", "residual_units", "modalities", "share_weights", "mode", "preprocessing")
 """Keys a saved model config must hold: they define the network and its grids, so a default would describe another
 model than the weights (``solver`` may be absent: a config saved before it existed gets today's defaults)."""
+SOLVER_FIELDS_ADDED = {"extra_degree_two_weights": ()}
+""":class:`SolverConfig` fields added after models began recording their solver, each with the value a model saved
+without it ran with: a saved model keeps registering as it was trained."""
 MAX_CHANNELS = 1024
 """Most channels of a UNet level (why this bound: docs/design_notes/models.md)."""
 MAX_RESIDUAL_UNITS = 8
@@ -152,10 +155,13 @@ class ModelConfig:
     @classmethod
     def from_json(cls, values: dict) -> ModelConfig:
         """Inverse of :meth:`to_json`; unknown keys are refused (a file from another program or version), and so
-        are missing :data:`REQUIRED_KEYS`."""
+        are missing :data:`REQUIRED_KEYS`; a recorded solver without a field of :data:`SOLVER_FIELDS_ADDED` gets
+        the value it ran with."""
         missing = [key for key in REQUIRED_KEYS if key not in values]
         if missing:
             raise InputError(f"model config lacks {missing}; a saved model must state {', '.join(REQUIRED_KEYS)}")
+        if isinstance(values.get("solver"), dict):  # saved before a field existed: the value it ran with
+            values = {**values, "solver": {**SOLVER_FIELDS_ADDED, **values["solver"]}}
         return _settings(cls, values, "model config")
 
 

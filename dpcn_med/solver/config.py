@@ -56,6 +56,12 @@ class SolverConfig:
             docs/design_notes/solver.md).
         sphere_radii: samples per ray, log-spaced.
         log_magnitude: aggregate ``log |FFT|`` (True) or ``|FFT|``.
+        degree_two_weight: 3-D only: weight, in ``[0, 1]``, of the spheres' degree-2 harmonics in the rotation
+            correlation and its refinement (1: as every other degree; 0: left out; degree 0, the mean, never takes
+            part). Degree 2, the spectrum's ellipsoid, is where resolution that differs by direction (thick slices)
+            shows most; weighted down it helps such pairs and hurts slabs (measured: docs/design_notes/solver.md).
+        extra_degree_two_weights: 3-D only: further correlations of the primary ``sphere_band`` with degree 2 at
+            each of these weights, whose peaks join the candidates (like ``extra_sphere_bands``').
         peaks: rotation peaks carried through scale and translation (top-k).
         half_turns: also try each peak composed with the 180-degree turns about the grid axes (both frames).
         rotation_half_width: half-width, in grid cells, of the SO(3) soft arg-max window.
@@ -89,6 +95,8 @@ class SolverConfig:
     extra_sphere_bands: tuple[tuple[float, float], ...] = ((0.3, 0.9),)
     sphere_radii: int = 24
     log_magnitude: bool = True
+    degree_two_weight: float = 1.0
+    extra_degree_two_weights: tuple[float, ...] = (0.3,)
     peaks: int = 4
     half_turns: bool = True
     rotation_half_width: int = 1
@@ -127,6 +135,12 @@ class SolverConfig:
         checked["duplicate_degrees"] = check_real("duplicate_degrees", self.duplicate_degrees, minimum=0.0,
                                                   maximum=180.0)
         checked["sphere_margin"] = check_real("sphere_margin", self.sphere_margin, minimum=0.0)
+        checked["degree_two_weight"] = check_real("degree_two_weight", self.degree_two_weight, minimum=0.0,
+                                                  maximum=1.0)
+        checked["extra_degree_two_weights"] = tuple(
+            check_real(f"extra_degree_two_weights[{index}]", weight, minimum=0.0, maximum=1.0)
+            for index, weight in enumerate(check_sequence("extra_degree_two_weights", self.extra_degree_two_weights,
+                                                          nonempty=False)))
         checked["max_scale"] = check_real("max_scale", self.max_scale, minimum=1.0, above=True)
         for name in ("sphere_band", "scale_band", "log_polar_band"):
             checked[name] = _band(name, getattr(self, name))

@@ -145,7 +145,8 @@ def _sphere(magnitude: Tensor, band: tuple[float, float], config: SolverConfig, 
 
 
 def _spectra(fixed_volume: Tensor, moving_volume: Tensor, bandwidth: int, config: SolverConfig) -> _Spectra:
-    """Steps 1-3a: magnitude spectra of ``(batch, N, N, N)`` volumes, their spheres per band, the spheres' harmonics."""
+    """Steps 1-3a: magnitude spectra of ``(batch, N, N, N)`` volumes, their spheres per band, the spheres' harmonics
+    (then, for each of ``config.extra_degree_two_weights``, the primary band's spheres and harmonics once more)."""
     bands = (config.sphere_band, *config.extra_sphere_bands)
     directions = sphere_directions(bandwidth, device=fixed_volume.device, dtype=fixed_volume.dtype)
     weights = quadrature_weights(bandwidth, device=fixed_volume.device, dtype=fixed_volume.dtype)
@@ -154,10 +155,30 @@ def _spectra(fixed_volume: Tensor, moving_volume: Tensor, bandwidth: int, config
     spheres = [(_sphere(fixed_magnitude, band, config, directions, weights),
                 _sphere(moving_magnitude, band, config, directions, weights)) for band in bands]
     degrees = even_degrees(bandwidth)
+    fixed_coeffs = [sht(fixed_sphere, degrees) for fixed_sphere, _ in spheres]
+    moving_coeffs = [sht(moving_sphere, degrees) for _, moving_sphere in spheres]
+    # Each extra degree-2 weight is one more correlation of the primary band, its peaks more candidates: the
+    # primary band's spheres again, their coefficients weighted otherwise.
+    weighting = [config.degree_two_weight] * len(spheres) + list(config.extra_degree_two_weights)
+    spheres += [spheres[0]] * len(config.extra_degree_two_weights)
+    fixed_coeffs += [fixed_coeffs[0]] * len(config.extra_degree_two_weights)
+    moving_coeffs += [moving_coeffs[0]] * len(config.extra_degree_two_weights)
     return _Spectra(fixed_magnitude=fixed_magnitude, moving_magnitude=moving_magnitude, directions=directions,
                     weights=weights, degrees=degrees, spheres=spheres,
-                    fixed_coeffs=[sht(fixed_sphere, degrees) for fixed_sphere, _ in spheres],
-                    moving_coeffs=[sht(moving_sphere, degrees) for _, moving_sphere in spheres])
+                    fixed_coeffs=[c * _degree_weights(degrees, w, c) for c, w in zip(fixed_coeffs, weighting)],
+                    moving_coeffs=[c * _degree_weights(degrees, w, c) for c, w in zip(moving_coeffs, weighting)])
+
+
+def _degree_weights(degrees: tuple[int, ...], degree_two: float, like: Tensor) -> Tensor:
+    """``(L, 1)`` weights of the harmonic coefficients ``like`` ``(batch, L, 2M + 1)`` of ``degrees``: ``degree_two``
+    for degree 2, 1 for the others.
+
+    Degree 2 is weighted in place rather than left out: the SO(3) tables are built for every even degree. A bandwidth
+    of 4 has no other degree, and keeps it.
+    """
+    two = degree_two if len(degrees) > 1 else 1.0
+    return torch.tensor([two if degree == 2 else 1.0 for degree in degrees], device=like.device,
+                        dtype=like.real.dtype)[:, None]
 
 
 def _with_half_turns(rotation: Tensor) -> Tensor:
