@@ -15,7 +15,8 @@ like. Prints the tables and writes them under docs/, with a figure of success ag
 
 Variants of dpcn_med's defaults (with ``--methods dpcn`` for its row alone): ``--bandwidth``, ``--sphere-band LOW
 HIGH`` (one band only: :attr:`dpcn_med.solver.SolverConfig.sphere_band` without the extra bands),
-``--degree-two-weight`` (:attr:`dpcn_med.solver.SolverConfig.degree_two_weight`), ``--fill``
+``--degree-two-weight`` (:attr:`dpcn_med.solver.SolverConfig.degree_two_weight`), ``--entropy-bins``
+(:attr:`dpcn_med.solver.SolverConfig.entropy_bins`), ``--fill``
 (:attr:`dpcn_med.preprocess.Preprocessing.fill`).
 """
 
@@ -277,6 +278,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="one sphere band instead of the solver's bands, fractions of Nyquist")
     parser.add_argument("--degree-two-weight", type=float, default=SolverConfig.degree_two_weight,
                         help="SolverConfig.degree_two_weight: the spheres' degree-2 harmonics' weight")
+    parser.add_argument("--entropy-bins", type=int, default=SolverConfig.entropy_bins,
+                        help="SolverConfig.entropy_bins: the entropy images' candidates (0: none)")
     parser.add_argument("--fill", type=float, default=Preprocessing.fill, help="canonical-grid fill")
     parser.add_argument("--label", default="dpcn_med learning-free (CLI defaults)",
                         help="the dpcn row's label, e.g. the variant")
@@ -294,7 +297,7 @@ def run_all(args: argparse.Namespace, methods: list[str]) -> list[dict]:
     """Every case of ``args`` with ``methods``, each row labelled (``args.label`` for dpcn_med's), also written to the
     per-registration CSV beside ``args.output`` for ``--combine``."""
     bands = {"sphere_band": tuple(args.sphere_band), "extra_sphere_bands": ()} if args.sphere_band else {}
-    solver = SolverConfig(degree_two_weight=args.degree_two_weight, **bands)
+    solver = SolverConfig(degree_two_weight=args.degree_two_weight, entropy_bins=args.entropy_bins, **bands)
     settings = {"bandwidth": args.bandwidth, "solver": solver, "preprocessing": Preprocessing(fill=args.fill)}
     rows = [{**row, "label": args.label if row["method"] == "dpcn" else METHODS[row["method"]][0]}
             for case in args.cases
@@ -325,8 +328,8 @@ def main(argv: list[str] | None = None) -> int:
         refuse_run_options(parser, argv, {
             "cases": "--cases", "overlaps": "--overlaps", "trials": "--trials", "methods": "--methods",
             "baseline_trials": "--baseline-trials", "seed": "--seed", "bandwidth": "--bandwidth",
-            "sphere_band": "--sphere-band", "degree_two_weight": "--degree-two-weight", "fill": "--fill",
-            "label": "--label"})
+            "sphere_band": "--sphere-band", "degree_two_weight": "--degree-two-weight",
+            "entropy_bins": "--entropy-bins", "fill": "--fill", "label": "--label"})
     installed = available_methods()
     methods = [m for m in args.methods if m in installed]
     missing = [] if args.combine else [m for m in args.methods if m not in installed]

@@ -325,7 +325,8 @@ class TestSecondSphereBand:
         moving = moved_copy(mr, truth)
         corners = foreground_corners(fixed)
         assert target_registration_error(register(fixed, moving).fixed_to_moving, truth, corners) < 2.0
-        one_band = register(fixed, moving, solver=SolverConfig(extra_sphere_bands=(), extra_degree_two_weights=()))
+        one_band = register(fixed, moving, solver=SolverConfig(extra_sphere_bands=(), extra_degree_two_weights=(),
+                                                               entropy_bins=0))
         assert target_registration_error(one_band.fixed_to_moving, truth, corners) > 20.0
 
 
@@ -337,7 +338,7 @@ class TestSolverSettings:
         truth = random_similarity(np.random.default_rng(4), foreground_box(fixed)[0])
         moving = moved_copy(fixed, truth)
         single = register(fixed, moving, solver=SolverConfig(peaks=1, half_turns=False, extra_sphere_bands=(),
-                                                             extra_degree_two_weights=()),
+                                                             extra_degree_two_weights=(), entropy_bins=0),
                           refinement=Refinement(stored_start=False))
         assert len(single.candidate_metrics) == 1
         assert len(register(fixed, moving, refinement=Refinement(stored_start=False)).candidate_metrics) > 1

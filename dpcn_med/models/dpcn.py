@@ -36,7 +36,7 @@ PER_CALL_SOLVER_FIELDS = ("bandwidth", "refine", "alternatives", "profile")
 REQUIRED_KEYS = ("bandwidth", "channels", "residual_units", "modalities", "share_weights", "mode", "preprocessing")
 """Keys a saved model config must hold: they define the network and its grids, so a default would describe another
 model than the weights (``solver`` may be absent: a config saved before it existed gets today's defaults)."""
-SOLVER_FIELDS_ADDED = {"extra_degree_two_weights": ()}
+SOLVER_FIELDS_ADDED = {"extra_degree_two_weights": (), "entropy_bins": 0}
 """:class:`SolverConfig` fields added after models began recording their solver, each with the value a model saved
 without it ran with: a saved model keeps registering as it was trained."""
 MAX_CHANNELS = 1024
@@ -283,7 +283,10 @@ class DPCN(nn.Module):
         ranking = stage.ranking
         dropped = ranking.score == float("-inf")
         linear = (ranking.scale[..., None, None] * ranking.rotation).detach()
-        scores = candidate_scores(fixed[:, 0], moving[:, 0], linear, self.solver.candidate_size, self.solver.taper)
+        columns = (~dropped).any(0).nonzero()[:, 0]  # only candidates some pair kept: most are dropped
+        kept = candidate_scores(fixed[:, 0], moving[:, 0], linear[:, columns], self.solver.candidate_size,
+                                self.solver.taper)
+        scores = kept.new_full(dropped.shape, float("-inf")).index_copy(1, columns, kept)
         return scores.masked_fill(dropped, float("-inf")), ranking.errors(target.rotation).to(scores.dtype)
 
     def translation_peak(self, fixed: Tensor, moving: Tensor, temperature: Tensor | None = None, amp: bool = False

@@ -62,6 +62,12 @@ class SolverConfig:
             shows most; weighted down it helps such pairs and hurts slabs (measured: docs/design_notes/solver.md).
         extra_degree_two_weights: 3-D only: further correlations of the primary ``sphere_band`` with degree 2 at
             each of these weights, whose peaks join the candidates (like ``extra_sphere_bands``').
+        entropy_bins: 3-D only: when at least 2, the entropy images (:mod:`dpcn_med.solver.entropy`) of both volumes,
+            with this many histogram bins, go through every correlation the volumes go through, and their peaks join
+            the candidates: rotations that a non-monotonic intensity map between the two volumes does not move.
+            Near-duplicates are dropped within each source; all are ranked on the volumes. 0: none (why 8:
+            docs/design_notes/solver.md).
+        entropy_sigma: the entropy images' window, standard deviation in grid voxels.
         peaks: rotation peaks carried through scale and translation (top-k).
         half_turns: also try each peak composed with the 180-degree turns about the grid axes (both frames).
         rotation_half_width: half-width, in grid cells, of the SO(3) soft arg-max window.
@@ -97,6 +103,8 @@ class SolverConfig:
     log_magnitude: bool = True
     degree_two_weight: float = 1.0
     extra_degree_two_weights: tuple[float, ...] = (0.3,)
+    entropy_bins: int = 8
+    entropy_sigma: float = 1.0
     peaks: int = 4
     half_turns: bool = True
     rotation_half_width: int = 1
@@ -141,6 +149,11 @@ class SolverConfig:
             check_real(f"extra_degree_two_weights[{index}]", weight, minimum=0.0, maximum=1.0)
             for index, weight in enumerate(check_sequence("extra_degree_two_weights", self.extra_degree_two_weights,
                                                           nonempty=False)))
+        checked["entropy_bins"] = check_integer("entropy_bins", self.entropy_bins, minimum=0, maximum=256)
+        if checked["entropy_bins"] == 1:
+            raise InputError("entropy_bins is 1: one bin has no entropy; expected 0 (no entropy images) or 2 to 256")
+        checked["entropy_sigma"] = check_real("entropy_sigma", self.entropy_sigma, minimum=0.0, above=True,
+                                              maximum=16.0)
         checked["max_scale"] = check_real("max_scale", self.max_scale, minimum=1.0, above=True)
         for name in ("sphere_band", "scale_band", "log_polar_band"):
             checked[name] = _band(name, getattr(self, name))

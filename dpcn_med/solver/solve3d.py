@@ -12,6 +12,7 @@ from torch import Tensor
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import geodesic_distance, half_turns, warp
 from dpcn_med.solver.config import SolverConfig, StageTemperatures, override
+from dpcn_med.solver.entropy import entropy_image
 from dpcn_med.solver.harmonics import even_degrees, isht, sht
 from dpcn_med.solver.phase_correlation import phase_correlation
 from dpcn_med.solver.scale import ScaleEstimate, log_polar_scale
@@ -35,6 +36,9 @@ from dpcn_med.solver.validation import check_bandwidth, check_grids, check_mode
 class Alternatives:
     """The runner-up candidates of :func:`solve`, best first, each with its own scale and translation: global poses
     for a later choice by an image similarity that phase correlation lacks (mutual information across modalities).
+
+    ``A`` is at most ``SolverConfig.alternatives``: the plausible runner-ups of the volume of the batch that has the
+    most, and at least 1. None is within ``SolverConfig.duplicate_degrees`` of a better-ranked candidate.
 
     Attributes:
         rotation: ``(batch, A, 3, 3)``, as :attr:`SolveResult.rotation`.
@@ -118,8 +122,10 @@ class _Spectra:
         directions: ``(2B, 2B, 3)`` unit vectors of the SOFT grid.
         weights: ``(2B,)`` its quadrature weights.
         degrees: the even degrees of the harmonic coefficients.
-        spheres: ``(fixed, moving)`` normalised spheres ``(batch, 2B, 2B)`` per band, the primary band first.
-        fixed_coeffs: ``(batch, L, 2M + 1)`` harmonic coefficients of each band's fixed sphere.
+        spheres: ``(fixed, moving)`` normalised spheres ``(batch, 2B, 2B)`` per correlation, the primary band first:
+            the volumes' correlations, then, with ``entropy_bins``, as many of their entropy images in the same order.
+        fixed_coeffs: ``(batch, L, 2M + 1)`` harmonic coefficients of each correlation's fixed sphere, weighted by
+            degree.
         moving_coeffs: same for the moving spheres.
     """
 
@@ -146,15 +152,36 @@ def _sphere(magnitude: Tensor, band: tuple[float, float], config: SolverConfig, 
 
 def _spectra(fixed_volume: Tensor, moving_volume: Tensor, bandwidth: int, config: SolverConfig) -> _Spectra:
     """Steps 1-3a: magnitude spectra of ``(batch, N, N, N)`` volumes, their spheres per band, the spheres' harmonics
-    (then, for each of ``config.extra_degree_two_weights``, the primary band's spheres and harmonics once more)."""
-    bands = (config.sphere_band, *config.extra_sphere_bands)
+    (then, for each of ``config.extra_degree_two_weights``, the primary band's spheres and harmonics once more), and
+    with ``config.entropy_bins``, all of these again for the volumes' entropy images."""
     directions = sphere_directions(bandwidth, device=fixed_volume.device, dtype=fixed_volume.dtype)
     weights = quadrature_weights(bandwidth, device=fixed_volume.device, dtype=fixed_volume.dtype)
-    fixed_magnitude = magnitude_spectrum(fixed_volume, 3, config.taper)
-    moving_magnitude = magnitude_spectrum(moving_volume, 3, config.taper)
+    degrees = even_degrees(bandwidth)
+    magnitudes = (magnitude_spectrum(fixed_volume, 3, config.taper), magnitude_spectrum(moving_volume, 3, config.taper))
+    spheres, fixed_coeffs, moving_coeffs = _correlated(*magnitudes, config, directions, weights, degrees)
+    if config.entropy_bins:  # why: docs/design_notes/solver.md
+        # Proposals only, without a graph: no loss reaches them but through the choice, which is made under no_grad,
+        # and their graph would double a training step's time and memory.
+        with torch.no_grad():
+            entropy = (magnitude_spectrum(entropy_image(volume, config.entropy_bins, config.entropy_sigma), 3,
+                                          config.taper) for volume in (fixed_volume, moving_volume))
+            more = _correlated(*entropy, config, directions, weights, degrees)
+        spheres, fixed_coeffs, moving_coeffs = (first + second for first, second in
+                                                zip((spheres, fixed_coeffs, moving_coeffs), more))
+    return _Spectra(fixed_magnitude=magnitudes[0], moving_magnitude=magnitudes[1], directions=directions,
+                    weights=weights, degrees=degrees, spheres=spheres, fixed_coeffs=fixed_coeffs,
+                    moving_coeffs=moving_coeffs)
+
+
+def _correlated(fixed_magnitude: Tensor, moving_magnitude: Tensor, config: SolverConfig, directions: Tensor,
+                weights: Tensor, degrees: tuple[int, ...]) -> tuple[list[tuple[Tensor, Tensor]], list[Tensor],
+                                                                    list[Tensor]]:
+    """Steps 2-3a for two magnitude spectra: ``(spheres, fixed_coeffs, moving_coeffs)``, one entry per correlation
+    (each band's, then the primary band's once more for each of ``config.extra_degree_two_weights``), the
+    coefficients weighted by degree."""
+    bands = (config.sphere_band, *config.extra_sphere_bands)
     spheres = [(_sphere(fixed_magnitude, band, config, directions, weights),
                 _sphere(moving_magnitude, band, config, directions, weights)) for band in bands]
-    degrees = even_degrees(bandwidth)
     fixed_coeffs = [sht(fixed_sphere, degrees) for fixed_sphere, _ in spheres]
     moving_coeffs = [sht(moving_sphere, degrees) for _, moving_sphere in spheres]
     # Each extra degree-2 weight is one more correlation of the primary band, its peaks more candidates: the
@@ -163,10 +190,8 @@ def _spectra(fixed_volume: Tensor, moving_volume: Tensor, bandwidth: int, config
     spheres += [spheres[0]] * len(config.extra_degree_two_weights)
     fixed_coeffs += [fixed_coeffs[0]] * len(config.extra_degree_two_weights)
     moving_coeffs += [moving_coeffs[0]] * len(config.extra_degree_two_weights)
-    return _Spectra(fixed_magnitude=fixed_magnitude, moving_magnitude=moving_magnitude, directions=directions,
-                    weights=weights, degrees=degrees, spheres=spheres,
-                    fixed_coeffs=[c * _degree_weights(degrees, w, c) for c, w in zip(fixed_coeffs, weighting)],
-                    moving_coeffs=[c * _degree_weights(degrees, w, c) for c, w in zip(moving_coeffs, weighting)])
+    return (spheres, [c * _degree_weights(degrees, w, c) for c, w in zip(fixed_coeffs, weighting)],
+            [c * _degree_weights(degrees, w, c) for c, w in zip(moving_coeffs, weighting)])
 
 
 def _degree_weights(degrees: tuple[int, ...], degree_two: float, like: Tensor) -> Tensor:
@@ -244,19 +269,23 @@ def candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, t
     return surface.flatten(2).amax(-1)
 
 
-def _rank_candidates(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score: Tensor, keep: Tensor,
-                     config: SolverConfig) -> tuple[Tensor, Tensor]:
-    """The candidates ``linear (batch, K, 3, 3)`` (scaled rotations) ranked, best first: indices ``(batch, K)`` and
-    scores ``(batch, K)``: the finalists by their fine score, then the others by their coarse score; ``-inf`` marks
-    an implausible candidate.
+def _rank_candidates(fixed: Tensor, moving: Tensor, rotation: Tensor, scale: Tensor, sphere_score: Tensor,
+                     keep: Tensor, config: SolverConfig) -> tuple[Tensor, Tensor]:
+    """The candidates ``rotation (batch, K, 3, 3)`` with their ``scale (batch, K)`` ranked, best first: indices
+    ``(batch, K)`` and scores ``(batch, K)``: the finalists by their fine score, then the others by their coarse
+    score; ``-inf`` marks an implausible candidate or a near-duplicate of one source's.
 
     Candidates whose sphere correlation falls more than ``sphere_margin`` below the best are implausible; the rest
     are scored by their translation peak on a coarse grid, and the ``finalists`` best are scored again on a finer one
     (why two grids: docs/design_notes/solver.md).
     """
+    linear = scale[..., None, None] * rotation
     plausible = keep & (sphere_score >= sphere_score.masked_fill(~keep, float("-inf")).amax(-1, keepdim=True)
                         - config.sphere_margin)
-    coarse = candidate_scores(fixed, moving, linear, config.candidate_size, config.taper)
+    # Only the candidates some volume of the batch finds plausible are scored: most are near-duplicates.
+    columns = plausible.any(0).nonzero()[:, 0]
+    scores = candidate_scores(fixed, moving, linear[:, columns], config.candidate_size, config.taper)
+    coarse = scores.new_full(plausible.shape, float("-inf")).index_copy(1, columns, scores)
     coarse = coarse.masked_fill(~plausible, float("-inf"))
     finalists = coarse.topk(min(config.finalists, coarse.shape[1]), dim=-1)
     finalist_linear = linear.gather(1, finalists.indices[..., None, None].expand(-1, -1, 3, 3))
@@ -291,12 +320,18 @@ def _resolve_candidates(fixed_volume: Tensor, moving_volume: Tensor, spectra: _S
     sphere_score = torch.cat([score - score.amax(-1, keepdim=True) for score in (
         sphere_correlation(moving_sphere, fixed_sphere, spectra.weights, spectra.directions, rotations)
         for (fixed_sphere, moving_sphere), rotations in zip(spectra.spheres, per_band))], 1)
-    keep = deduplicate(candidates, sphere_score, math.radians(config.duplicate_degrees))
+    # Near-duplicates are dropped within each source: sphere scores of the volumes and of their entropy images do
+    # not say which of two close candidates is the better one.
+    sizes = [rotations.shape[1] for rotations in per_band]  # the volumes' correlations, then as many of entropy
+    split = sum(sizes[:len(sizes) // 2]) if config.entropy_bins else candidates.shape[1]
+    keep = torch.cat([deduplicate(part, score, math.radians(config.duplicate_degrees)) for part, score in
+                      zip(candidates.tensor_split([split], 1), sphere_score.tensor_split([split], 1))
+                      if part.shape[1]], 1)
     if mode == "similarity":
         scale = _scale_stage(spectra, candidates, config, temperatures).scale
     else:
         scale = torch.ones(*candidates.shape[:2], device=candidates.device, dtype=candidates.dtype)
-    ranked, score = _rank_candidates(fixed_volume, moving_volume, scale[..., None, None] * candidates, sphere_score,
+    ranked, score = _rank_candidates(fixed_volume, moving_volume, candidates, scale, sphere_score,
                                      keep, config)
     return keep, scale, ranked, score
 
@@ -321,14 +356,23 @@ def _translation_stage(fixed: Tensor, moving: Tensor, linear: Tensor, temperatur
 def _alternatives(fixed_volume: Tensor, moving: Tensor, candidates: Tensor, scale: Tensor, ranked: Tensor,
                   score: Tensor, config: SolverConfig, temperatures: StageTemperatures) -> Alternatives:
     """The runner-up candidates (``ranked[:, 1:]``, up to ``config.alternatives``), each with a full-resolution
-    translation."""
+    translation; near-duplicates of a better-ranked candidate (of the other source, the entropy images' or the
+    volumes') are passed over."""
     rows = torch.arange(candidates.shape[0], device=candidates.device)[:, None]
-    others = ranked[:, 1:1 + config.alternatives]
+    rank = torch.arange(ranked.shape[1], device=ranked.device, dtype=score.dtype)
+    distinct = deduplicate(candidates[rows, ranked], (-rank).expand_as(score), math.radians(config.duplicate_degrees))
+    runner_up = distinct & (score > float("-inf")) & (rank > 0)
+    # The runner-ups first, in their order; slots no volume of the batch has one for are left out rather than
+    # translated at full resolution (one at least, so that the shapes stay those of a runner-up).
+    order = (~runner_up).to(torch.int8).sort(dim=-1, stable=True).indices
+    count = max(1, min(config.alternatives, int(runner_up.sum(-1).amax())))
+    others, valid = ranked.gather(1, order[:, :count]), runner_up.gather(1, order[:, :count])
     rotations, scales = candidates[rows, others], scale[rows, others]
     translations, estimate = _translation_stage(fixed_volume, moving, scales[..., None, None] * rotations,
                                                 temperatures.translation, config, refine=True)
     return Alternatives(rotation=rotations, scale=scales, translation=translations,
-                        confidence=estimate.peak.mass.view(scales.shape), score=score[:, 1:1 + config.alternatives])
+                        confidence=estimate.peak.mass.view(scales.shape),
+                        score=score.gather(1, order[:, :count]).masked_fill(~valid, float("-inf")))
 
 
 def _refine_chosen(spectra: _Spectra, rotation: Tensor, band: Tensor, bandwidth: int, config: SolverConfig) -> Tensor:
@@ -373,7 +417,8 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
 
     Returns:
         A :class:`SolveResult` with ``fixed(p) ~ moving(scale * rotation @ p + translation)``. With ``refine=False``
-        every estimate is a soft arg-max, differentiable with respect to both inputs and the temperatures.
+        every estimate is a soft arg-max, differentiable with respect to both inputs and the temperatures (but for a
+        rotation chosen from the entropy images' candidates, which are computed without a graph).
 
     Raises:
         InputError: malformed grids (shape, size, dtype, NaN/Inf, empty batch), a bandwidth out of range, an unknown

@@ -117,6 +117,9 @@ class TestSolverConfig:
         ("degree_two_weight", -0.1, r"degree_two_weight is -0\.1; expected a finite number >= 0 and <= 1"),
         ("extra_degree_two_weights", (0.3, 2.0), r"extra_degree_two_weights\[1\] is 2\.0; expected a finite number"),
         ("extra_degree_two_weights", 0.3, r"extra_degree_two_weights is 0\.3 \(float\); expected a tuple"),
+        ("entropy_bins", 1, r"entropy_bins is 1: one bin has no entropy; expected 0"),
+        ("entropy_bins", -1, r"entropy_bins is -1; expected an integer >= 0 and <= 256"),
+        ("entropy_sigma", 0.0, r"entropy_sigma is 0\.0; expected a finite number > 0 and <= 16"),
         ("sphere_margin", float("inf"), r"sphere_margin is inf; expected a finite number >= 0"),
         ("sphere_margin", "0.25", r"sphere_margin is '0\.25' \(str\); expected a finite number"),
         ("sphere_band", (0.6, 0.05), r"sphere_band is \(0\.6, 0\.05\); expected \(low, high\) .* 0 < low < high <= 1"),
@@ -290,7 +293,7 @@ class TestAlternatives:
         fixed = volume_grid("mni", 32)
         moving = random_poses(1, 32, seed=20)[0].moving_from(fixed)
         single = solve(fixed, moving, peaks=1, half_turns=False, extra_sphere_bands=(), extra_degree_two_weights=(),
-                       alternatives=3)
+                       entropy_bins=0, alternatives=3)
         assert single.alternatives is None
 
     def test_runner_ups_are_other_rotations_and_include_the_mirror_twin(self):
@@ -303,10 +306,13 @@ class TestAlternatives:
         torch.testing.assert_close(result.rotation, plain.rotation)  # asking for them changes nothing else
         torch.testing.assert_close(result.translation, plain.translation)
         alternatives = result.alternatives
-        assert alternatives.rotation.shape == (1, 7, 3, 3) and alternatives.translation.shape == (1, 7, 3)
-        assert alternatives.scale.shape == alternatives.confidence.shape == alternatives.score.shape == (1, 7)
+        count = alternatives.score.shape[1]  # the plausible runner-ups, up to 7
+        assert 1 <= count <= 7
+        assert alternatives.rotation.shape == (1, count, 3, 3) and alternatives.translation.shape == (1, count, 3)
+        assert alternatives.scale.shape == alternatives.confidence.shape == alternatives.score.shape == (1, count)
         valid = alternatives.score[0] > float("-inf")
-        assert 1 <= valid.sum() <= 7
+        assert valid.all()  # one volume: no slot is left without a plausible candidate
+        assert count < int((result.ranking.score[0, 1:] > float("-inf")).sum())  # near-duplicates passed over
         rotations = alternatives.rotation[0, valid]
         torch.testing.assert_close(rotations @ rotations.transpose(-1, -2), torch.eye(3).expand_as(rotations),
                                    atol=1e-4, rtol=0)

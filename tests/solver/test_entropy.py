@@ -1,0 +1,89 @@
+"""Entropy images: near-invariance to a reordering of the intensities, range, smoothing, rotation candidates."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from dpcn_med.solver import solve
+from dpcn_med.solver.entropy import _smooth, entropy_image
+from dpcn_med.synth import random_poses
+from tests.conftest import volume_grid
+
+LEVELS = 8
+REORDERED = torch.tensor([0.0, 5, 2, 7, 1, 6, 3, 4]) / (LEVELS - 1)
+"""A one-to-one, non-monotonic map of eight tissue levels (two contrasts ordering the tissues differently); the
+lowest and highest level keep their values, so each volume's intensity range, and so its bins, stay as they were."""
+
+FLOOR = 0.3679
+"""The entropy of a uniform region whose value lies on a bin centre: its soft bins' own spread (measured)."""
+
+
+def quantised_head(size: int) -> torch.Tensor:
+    """The MNI head on a ``size^3`` grid as ``LEVELS`` integer tissue labels, ``(1, 1, N, N, N)``."""
+    head = volume_grid("mni", size)
+    return (head * (LEVELS - 0.001) / head.max()).floor().clamp(0, LEVELS - 1)
+
+
+class TestEntropyImage:
+    def test_a_reordering_of_the_intensities_barely_changes_it(self):
+        """Hard bins would give the same image; the soft bins spread each level to its neighbours, which a reordering
+        changes, so the images agree closely rather than exactly. Inside the head the raw intensities do not."""
+        labels = quantised_head(32)[:, 0]
+        monotonic, reordered = labels / (LEVELS - 1), REORDERED[labels.long()]
+        inside = labels > 0
+
+        def correlation(first, second):
+            return torch.corrcoef(torch.stack([first[inside], second[inside]]))[0, 1].item()
+
+        assert correlation(monotonic, reordered) < 0.0  # measured -0.13
+        first, second = entropy_image(monotonic, LEVELS, 1.0), entropy_image(reordered, LEVELS, 1.0)
+        assert correlation(first, second) > 0.95  # measured 0.97
+        assert (first - second).abs().amax() < 0.1 * first.amax()  # measured 0.15 of 2.0 nats
+        # Boundaries are high; uniform tissue and the background are at the floor of one voxel's soft bins.
+        assert first.amax() > 1.0 and first[:, 0, 0, 0].item() == pytest.approx(FLOOR, abs=1e-4)
+
+    def test_its_range_and_a_constant_volume(self):
+        torch.manual_seed(0)
+        image = entropy_image(torch.rand(2, 16, 16, 16, dtype=torch.float64), 16, 2.0)
+        assert image.shape == (2, 16, 16, 16) and image.dtype == torch.float64
+        assert image.amin() >= 0 and image.amax() <= math.log(16) + 1e-9
+        constant = entropy_image(torch.full((1, 16, 16, 16), 3.0), 8, 1.0)
+        torch.testing.assert_close(constant, torch.full_like(constant, FLOOR), atol=1e-4, rtol=0)
+
+    def test_gradients_reach_the_volume(self):
+        volume = torch.rand(1, 16, 16, 16, dtype=torch.float64, requires_grad=True)
+        entropy_image(volume, 8, 1.0).sum().backward()
+        assert volume.grad is not None and volume.grad.isfinite().all() and volume.grad.abs().amax() > 0
+
+    @pytest.mark.parametrize("sigma", [0.5, 1.0, 2.5])
+    def test_the_smoothing_is_a_gaussian_with_replicated_edges(self, sigma):
+        torch.manual_seed(1)
+        volumes = torch.rand(3, 20, 20, 20, dtype=torch.float64)
+        radius = max(1, math.ceil(3 * sigma))
+        taps = torch.arange(-radius, radius + 1, dtype=torch.float64)
+        kernel = torch.exp(-0.5 * (taps / sigma) ** 2)
+        kernel = kernel / kernel.sum()
+        expected = volumes[:, None]
+        for axis in range(3):
+            shape, padding = [1, 1, 1, 1, 1], [0] * 6
+            shape[2 + axis], padding[2 * (2 - axis):2 * (2 - axis) + 2] = kernel.numel(), [radius, radius]
+            expected = F.conv3d(F.pad(expected, padding, mode="replicate"), kernel.view(shape))
+        torch.testing.assert_close(_smooth(volumes, sigma), expected[:, 0])
+
+
+class TestEntropyCandidates:
+    @pytest.mark.parametrize("seed", [0, 1, 2])
+    def test_they_hold_the_truth_under_a_non_monotonic_map(self, seed):
+        """The same head with its tissue levels reordered on the moving side: the raw volumes' candidates all miss
+        the truth by more than 4 degrees (measured 4.8-7.6), the entropy images' include it within 3 (1.4-2.0)."""
+        labels = quantised_head(64)
+        pose = random_poses(1, 64, seed=seed)[0]
+        moving = pose.moving_from(REORDERED[labels.long()])
+        nearest = {bins: solve(labels / (LEVELS - 1), moving, bandwidth=32, entropy_bins=bins).ranking.errors(
+            pose.rotation[None].to(torch.float32)).amin().item() for bins in (0, 8)}
+        assert nearest[8] < 3.0
+        assert nearest[0] > 4.0
