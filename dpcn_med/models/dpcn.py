@@ -283,11 +283,9 @@ class DPCN(nn.Module):
         ranking = stage.ranking
         dropped = ranking.score == float("-inf")
         linear = (ranking.scale[..., None, None] * ranking.rotation).detach()
-        columns = (~dropped).any(0).nonzero()[:, 0]  # only candidates some pair kept: most are dropped
-        kept = candidate_scores(fixed[:, 0], moving[:, 0], linear[:, columns], self.solver.candidate_size,
-                                self.solver.taper)
-        scores = kept.new_full(dropped.shape, float("-inf")).index_copy(1, columns, kept)
-        return scores.masked_fill(dropped, float("-inf")), ranking.errors(target.rotation).to(scores.dtype)
+        scores = candidate_scores(fixed[:, 0], moving[:, 0], linear, self.solver.candidate_size, self.solver.taper,
+                                  keep=~dropped)
+        return scores, ranking.errors(target.rotation).to(scores.dtype)
 
     def translation_peak(self, fixed: Tensor, moving: Tensor, temperature: Tensor | None = None, amp: bool = False
                          ) -> TranslationEstimate:

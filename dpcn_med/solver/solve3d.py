@@ -254,39 +254,41 @@ def _downsample(volume: Tensor, size: int) -> Tensor:
     return F.avg_pool3d(volume[:, None], factor)[:, 0]
 
 
-def candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, taper: float) -> Tensor:
+def candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, taper: float,
+                     keep: Tensor | None = None) -> Tensor:
     """Phase-correlation peak of each candidate on a downsampled grid: ``fixed, moving (batch, N, N, N)`` and
     ``linear (batch, K, 3, 3)`` -> ``(batch, K)``, differentiable with respect to both volumes.
 
     The peak height measures how well the whole volume (not only its spectrum) agrees once rotated and scaled: it is
-    what tells a rotation from its mirror twin.
+    what tells a rotation from its mirror twin. With ``keep (batch, K)``, only the candidates that some volume of the
+    batch keeps are scored (most are near-duplicates or implausible), and the others are ``-inf``.
     """
+    columns = None if keep is None else keep.any(0).nonzero()[:, 0]
     coarse_fixed = _downsample(fixed, size)
     coarse_moving = _downsample(moving, size)
-    warped = warp(coarse_moving[:, None], linear)[:, 0]  # (batch, K, n, n, n)
+    scored = linear if columns is None else linear[:, columns]
+    warped = warp(coarse_moving[:, None], scored)[:, 0]  # (batch, K, n, n, n)
     # The fixed volume's spectrum broadcasts over the K candidates: one FFT, not K.
     surface, _ = phase_correlation(apodize(coarse_fixed, 3, taper)[:, None], apodize(warped, 3, taper), 3)
-    return surface.flatten(2).amax(-1)
+    scores = surface.flatten(2).amax(-1)
+    if columns is None:
+        return scores
+    return scores.new_full(keep.shape, float("-inf")).index_copy(1, columns, scores).masked_fill(~keep, float("-inf"))
 
 
-def _rank_candidates(fixed: Tensor, moving: Tensor, rotation: Tensor, scale: Tensor, sphere_score: Tensor,
-                     keep: Tensor, config: SolverConfig) -> tuple[Tensor, Tensor]:
-    """The candidates ``rotation (batch, K, 3, 3)`` with their ``scale (batch, K)`` ranked, best first: indices
-    ``(batch, K)`` and scores ``(batch, K)``: the finalists by their fine score, then the others by their coarse
-    score; ``-inf`` marks an implausible candidate or a near-duplicate of one source's.
+def _rank_candidates(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score: Tensor, keep: Tensor,
+                     config: SolverConfig) -> tuple[Tensor, Tensor]:
+    """The candidates ``linear (batch, K, 3, 3)`` (scaled rotations) ranked, best first: indices ``(batch, K)`` and
+    scores ``(batch, K)``: the finalists by their fine score, then the others by their coarse score; ``-inf`` marks
+    an implausible candidate.
 
     Candidates whose sphere correlation falls more than ``sphere_margin`` below the best are implausible; the rest
     are scored by their translation peak on a coarse grid, and the ``finalists`` best are scored again on a finer one
     (why two grids: docs/design_notes/solver.md).
     """
-    linear = scale[..., None, None] * rotation
     plausible = keep & (sphere_score >= sphere_score.masked_fill(~keep, float("-inf")).amax(-1, keepdim=True)
                         - config.sphere_margin)
-    # Only the candidates some volume of the batch finds plausible are scored: most are near-duplicates.
-    columns = plausible.any(0).nonzero()[:, 0]
-    scores = candidate_scores(fixed, moving, linear[:, columns], config.candidate_size, config.taper)
-    coarse = scores.new_full(plausible.shape, float("-inf")).index_copy(1, columns, scores)
-    coarse = coarse.masked_fill(~plausible, float("-inf"))
+    coarse = candidate_scores(fixed, moving, linear, config.candidate_size, config.taper, keep=plausible)
     finalists = coarse.topk(min(config.finalists, coarse.shape[1]), dim=-1)
     finalist_linear = linear.gather(1, finalists.indices[..., None, None].expand(-1, -1, 3, 3))
     fine = candidate_scores(fixed, moving, finalist_linear, config.finalist_size, config.taper)
@@ -331,7 +333,7 @@ def _resolve_candidates(fixed_volume: Tensor, moving_volume: Tensor, spectra: _S
         scale = _scale_stage(spectra, candidates, config, temperatures).scale
     else:
         scale = torch.ones(*candidates.shape[:2], device=candidates.device, dtype=candidates.dtype)
-    ranked, score = _rank_candidates(fixed_volume, moving_volume, candidates, scale, sphere_score,
+    ranked, score = _rank_candidates(fixed_volume, moving_volume, scale[..., None, None] * candidates, sphere_score,
                                      keep, config)
     return keep, scale, ranked, score
 

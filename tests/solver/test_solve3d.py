@@ -283,6 +283,17 @@ class TestRecoveryOnRealAnatomy:
         peaks = candidate_scores(fixed, moving, pose.scale * rotations, size, 0.25)[0]
         assert peaks[0].item() > 2 * peaks[1].item()
 
+    def test_only_the_kept_candidates_are_scored(self):
+        fixed = volume_grid("mni", 32)[:, 0].expand(2, -1, -1, -1)
+        poses = random_poses(4, 32, seed=3)
+        linear = torch.stack([pose.scale * pose.rotation for pose in poses]).float()[None].expand(2, -1, -1, -1)
+        moving = fixed.flip(-1)
+        keep = torch.tensor([[True, False, False, True], [False, False, False, True]])
+        every = candidate_scores(fixed, moving, linear, 32, 0.25)
+        kept = candidate_scores(fixed, moving, linear, 32, 0.25, keep=keep)
+        torch.testing.assert_close(kept, every.masked_fill(~keep, float("-inf")))
+        assert torch.isfinite(every).all()
+
 
 class TestAlternatives:
     def test_runner_ups_come_back_only_when_asked(self):
