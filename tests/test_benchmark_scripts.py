@@ -50,6 +50,9 @@ class TestCounts:
         ("cli_time", ["--repeats", "0"], "argument --repeats: 0 is too few"),
         ("solver_speed", ["--repeats", "0"], "argument --repeats: 0 is too few"),
         ("solver_speed", ["--devices", "gpu"], "argument --devices: 'gpu' is not a torch device"),
+        ("ultrasound", ["--trials", "0"], "argument --trials: 0 is too few"),
+        ("ultrasound", ["--baseline-trials", "-1"], "argument --baseline-trials: -1 is too few"),
+        ("ultrasound", ["--cases", "us-us"], "argument --cases: invalid choice: 'us-us'"),
     ])
     def test_refused_before_any_work(self, name, argv, message, tmp_path, capsys):
         output = tmp_path / "table.md"
@@ -394,3 +397,32 @@ class TestHeldoutFactors:
             monotonic=True, bias_strength=0.0, sigma_range=(0.0, 0.0), noise_std_range=(0.0, 0.0))
         assert rows["non-monotonic intensity map alone"].fixed_contrast.factor_range == (1.0, 1.0)
         assert not rows["non-monotonic intensity map alone"].fixed_contrast.monotonic
+
+
+class TestUltrasound:
+    def test_probes_look_down_within_the_tilt_and_cover_every_azimuth(self):
+        module = script("ultrasound")
+        rng = np.random.default_rng(0)
+        directions = np.stack([module.probe_direction(rng) for _ in range(2000)])
+        assert np.allclose(np.linalg.norm(directions, axis=1), 1.0)
+        tilt = np.degrees(np.arccos(-directions[:, 2]))
+        assert tilt.max() <= module.MAX_TILT_DEGREES + 1e-9 and tilt.max() > module.MAX_TILT_DEGREES - 2
+        # uniform over the cap: half its area lies within the angle whose cosine is the mean of 1 and cos(60)
+        half = np.degrees(np.arccos((1 + np.cos(np.radians(module.MAX_TILT_DEGREES))) / 2))
+        assert abs(np.mean(tilt < half) - 0.5) < 0.05
+        azimuth = np.arctan2(directions[:, 1], directions[:, 0])
+        assert np.histogram(azimuth, bins=4, range=(-np.pi, np.pi))[0].min() > 400
+
+    def test_the_table_counts_successes_and_repeats_dpcn_on_the_baselines_poses(self):
+        module = script("ultrasound")
+        rows = [{"case": "us-mr", "trial": trial, "method": "dpcn", "tre_mm": tre, "seconds": 2.0}
+                for trial, tre in enumerate([1.0, 2.0, 3.0, 50.0])]
+        rows += [{"case": "us-mr", "trial": trial, "method": "sitk-exhaustive", "tre_mm": tre, "seconds": 9.0}
+                 for trial, tre in enumerate([0.5, 79.5])]
+        rows += [{"case": "us-mr", "trial": trial, "method": module.FROM_TRUTH, "tre_mm": 1.0, "seconds": 1.0}
+                 for trial in range(4)]
+        text = module.table(rows, ["dpcn", module.FROM_TRUTH, "sitk-exhaustive"], baseline_trials=2)
+        assert text.index("from the true pose | 4 | 4 of 4 (100%)") < text.index("on the baselines' 2 poses")
+        assert "| us-mr | dpcn_med (defaults) | 4 | 2 of 4 (50%) | 2.5 | 2.0 |" in text
+        assert "| us-mr | dpcn_med, on the baselines' 2 poses | 2 | 2 of 2 (100%) | 1.5 | 2.0 |" in text
+        assert "| us-mr | SimpleITK MI after an exhaustive Euler-angle search | 2 | 1 of 2 (50%) | 40.0 | 9.0 |" in text
