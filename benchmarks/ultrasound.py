@@ -211,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trials", type=count_type(), default=20, help="poses (and cones) per case")
     parser.add_argument("--baseline-trials", type=count_type(0), default=5,
                         help="the baselines run on the first this many poses")
-    parser.add_argument("--methods", nargs="+", choices=[*METHODS, FROM_TRUTH], default=["dpcn", FROM_TRUTH, *BASELINES],
+    parser.add_argument("--methods", nargs="+", choices=[*METHODS, FROM_TRUTH],
+                        default=["dpcn", FROM_TRUTH, *BASELINES],
                         help=f"{FROM_TRUTH}: dpcn_med's refinement alone from the true pose, on every pose")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "ultrasound.md")
