@@ -35,6 +35,7 @@ import SimpleITK as sitk
 
 from dpcn_med.benchmark import METHODS, available_methods
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
+from dpcn_med.geometry import homogeneous_matrix, similarity_transform
 from dpcn_med.io import write_csv
 from dpcn_med.preprocess import foreground_mask
 from dpcn_med.refine import Refinement, choose_and_refine, metric_masks
@@ -107,10 +108,7 @@ def trials(whole: dict[str, sitk.Image], count: int, seed: int):
 def refined_from_truth(fixed: sitk.Image, moving: sitk.Image, truth: sitk.Transform) -> sitk.Transform:
     """dpcn_med's refinement (:func:`dpcn_med.refine.choose_and_refine`, the defaults) from ``truth`` alone, the
     metric sampled on the fixed foreground dilated as :func:`dpcn_med.register` samples it."""
-    start = sitk.VersorRigid3DTransform()
-    start.SetCenter(sitk.Similarity3DTransform(truth).GetCenter())
-    start.SetMatrix(sitk.Similarity3DTransform(truth).GetMatrix())
-    start.SetTranslation(sitk.Similarity3DTransform(truth).GetTranslation())
+    start = similarity_transform(homogeneous_matrix(truth), np.asarray(truth.GetFixedParameters()[:3]), rigid=True)
     masks = metric_masks(None, foreground_mask(fixed), None, Refinement())
     return choose_and_refine(fixed, moving, [start], masks).fixed_to_moving
 

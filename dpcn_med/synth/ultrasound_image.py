@@ -19,7 +19,7 @@ import torch
 
 from dpcn_med.arguments import check_integer, check_pair, check_real, check_sequence
 from dpcn_med.errors import InputError
-from dpcn_med.geometry import CanonicalGrid
+from dpcn_med.geometry import CanonicalGrid, affine_points
 from dpcn_med.preprocess import foreground_box, resample_to_grid, to_tensor
 from dpcn_med.synth.ultrasound import UltrasoundConfig, simulated_ultrasound
 
@@ -110,10 +110,7 @@ def _opened(window: torch.Tensor, hu: torch.Tensor, direction: torch.Tensor, spa
             craniotomy: Craniotomy) -> torch.Tensor:
     """``window`` (the simulator's input, ``(N, N, N)``) with the bone near the probe's axis replaced: the axis runs
     along ``direction`` through the centroid of the foreground (``window > 0``, as the simulator finds it)."""
-    size = window.shape[-1]
-    ticks = (torch.arange(size, dtype=torch.float64) - size // 2) * spacing
-    z, y, x = torch.meshgrid(ticks, ticks, ticks, indexing="ij")
-    points = torch.stack([x, y, z], -1)
+    points = affine_points(tuple(window.shape), torch.eye(3, dtype=window.dtype)[None])[0] * spacing  # mm, (x, y, z)
     foreground = (window > 0)[..., None]
     centroid = (points * foreground).sum((0, 1, 2)) / foreground.sum().clamp_min(1)
     offset = points - centroid
