@@ -21,7 +21,10 @@ from dpcn_med.arguments import check_integer, check_pair, check_real, check_sequ
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import CanonicalGrid, affine_points
 from dpcn_med.preprocess import foreground_box, resample_to_grid, to_tensor
-from dpcn_med.synth.ultrasound import UltrasoundConfig, simulated_ultrasound
+from dpcn_med.synth.ultrasound import UltrasoundConfig, b_mode, simulated_ultrasound
+
+DYNAMIC_RANGE_DB = 50.0
+""":func:`ultrasound_image`'s default display range: a B-mode image's usual 40 to 60 dB."""
 
 
 @dataclass(frozen=True)
@@ -62,8 +65,8 @@ def _unit_probe(probe: Sequence[float]) -> torch.Tensor:
 
 
 def ultrasound_image(ct: sitk.Image, probe: Sequence[float], *, seed: int = 0, spacing: float = 1.5,
-                     config: UltrasoundConfig | None = None, craniotomy: Craniotomy | None = None
-                     ) -> tuple[sitk.Image, sitk.Image]:
+                     config: UltrasoundConfig | None = None, craniotomy: Craniotomy | None = None,
+                     dynamic_range_db: float | None = DYNAMIC_RANGE_DB) -> tuple[sitk.Image, sitk.Image]:
     """A 3-D ultrasound cone of ``ct``'s anatomy, in ``ct``'s physical space.
 
     Args:
@@ -77,10 +80,13 @@ def ultrasound_image(ct: sitk.Image, probe: Sequence[float], *, seed: int = 0, s
             ``depth_range`` and ``standoff`` are fractions of the side of the cube that holds ``ct``'s foreground (its
             bounding-box diagonal).
         craniotomy: the opening in the skull and the simulator's CT window (default :class:`Craniotomy`).
+        dynamic_range_db: the echoes log-compressed over this range (:func:`dpcn_med.synth.ultrasound.b_mode`), as
+            a scanner exports them; ``None``: the raw echo intensities.
 
     Returns:
-        ``(ultrasound, cone)``: float32 echoes in ``[0, 1]`` (0 outside the cone) and the uint8 cone of view, both
-        on one grid: identity direction, ``spacing`` mm, cropped to the cone's bounding box.
+        ``(ultrasound, cone)``: float32 echoes in ``[0, 1]`` (0 outside the cone, above 0 inside it when
+        compressed) and the uint8 cone of view, both on one grid: identity direction, ``spacing`` mm, cropped to the
+        cone's bounding box.
 
     Raises:
         InputError: ``ct`` not a 3-D scalar image or without foreground, a malformed ``probe``, ``seed`` or
@@ -92,6 +98,8 @@ def ultrasound_image(ct: sitk.Image, probe: Sequence[float], *, seed: int = 0, s
     direction = _unit_probe(probe)
     seed = check_integer("seed", seed, minimum=0)
     spacing = check_real("spacing", spacing, minimum=0.0, above=True)
+    if dynamic_range_db is not None:
+        dynamic_range_db = check_real("dynamic_range_db", dynamic_range_db, minimum=0.0, above=True)
     config, craniotomy = config or UltrasoundConfig(), craniotomy or Craniotomy()
     centre, diagonal = foreground_box(ct)
     size = 2 * math.ceil(diagonal / spacing / 2)  # even: the simulator's grid centre is voxel size // 2
@@ -103,6 +111,8 @@ def ultrasound_image(ct: sitk.Image, probe: Sequence[float], *, seed: int = 0, s
         window = _opened(window, hu, direction, spacing, craniotomy)
     generator = torch.Generator().manual_seed(seed)
     echoes, cone = simulated_ultrasound(window[None, None], generator, probe=direction, config=config)
+    if dynamic_range_db is not None:
+        echoes = b_mode(echoes, cone, dynamic_range_db)
     return _cropped(echoes[0, 0], cone[0, 0] > 0, grid)
 
 

@@ -11,6 +11,7 @@ import torch.nn.functional as F
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import affine_points
 from dpcn_med.synth import UltrasoundConfig, simulated_ultrasound
+from dpcn_med.synth.ultrasound import B_MODE_FLOOR, b_mode
 
 SIZE = 32
 ALONG_Z = torch.tensor([0.0, 0.0, 1.0])
@@ -145,3 +146,29 @@ class TestUltrasoundConfig:
     def test_either_gain_alone_is_enough(self):
         UltrasoundConfig(reflection_gain=0.0)
         UltrasoundConfig(scatter_gain=0.0)
+
+
+class TestBMode:
+    def test_echoes_are_compressed_over_the_range_with_nothing_outside_the_cone(self):
+        echoes = torch.tensor([1.0, 0.1, 0.01, 1e-5, 0.0, 0.5])
+        cone = torch.tensor([1.0, 1.0, 1.0, 1.0, 1.0, 0.0])
+        shown = b_mode(echoes, cone, 40.0)
+        # 0, -10 and -20 dB of a 40 dB range; the floor below -40 dB; 0 outside the cone whatever the echo
+        torch.testing.assert_close(shown, torch.tensor([1.0, 0.75, 0.5, B_MODE_FLOOR, B_MODE_FLOOR, 0.0]))
+
+    def test_a_simulated_cone_stays_its_nonzero_voxels(self):
+        ct = _phantom()
+        echoes, cone = simulated_ultrasound(ct, _seeded(0), probe=ALONG_Z, config=FIXED_CONE)
+        shown = b_mode(echoes, cone, 50.0)
+        assert torch.equal(shown > 0, cone > 0)
+        # monotonic: the order of the echoes inside the cone is kept
+        inside = cone > 0
+        order = torch.argsort(echoes[inside])
+        assert (torch.diff(shown[inside][order]) >= 0).all()
+
+    @pytest.mark.parametrize(("range_db", "shape", "message"), [
+        (0.0, (3,), "dynamic_range_db"), (-10.0, (3,), "dynamic_range_db"), (40.0, (2,), "shapes? that differ|shape"),
+    ])
+    def test_bad_arguments_are_refused(self, range_db, shape, message):
+        with pytest.raises(InputError, match=message):
+            b_mode(torch.ones(3), torch.ones(shape), range_db)

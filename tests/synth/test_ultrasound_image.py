@@ -11,7 +11,8 @@ import SimpleITK as sitk
 
 from dpcn_med.errors import InputError
 from dpcn_med.synth import UltrasoundConfig
-from dpcn_med.synth.ultrasound_image import Craniotomy, ultrasound_image
+from dpcn_med.synth.ultrasound import B_MODE_FLOOR
+from dpcn_med.synth.ultrasound_image import DYNAMIC_RANGE_DB, Craniotomy, ultrasound_image
 
 DOWN = (0.0, 0.0, -1.0)  # beams from above (LPS +z) into the head
 SCATTER = UltrasoundConfig(half_angle_degrees=(30.0, 30.0), depth_range=(0.6, 0.6), reflection_gain=0.0,
@@ -120,3 +121,19 @@ class TestUltrasoundImage:
     def test_craniotomy_settings_are_checked(self, kwargs, message):
         with pytest.raises(InputError, match=message):
             Craniotomy(**kwargs)
+
+
+class TestBModeImage:
+    def test_the_image_is_log_compressed_by_default_and_raw_on_request(self):
+        raw, cone = ultrasound_image(_head(), DOWN, seed=1, spacing=4.0, dynamic_range_db=None)
+        shown, same_cone = ultrasound_image(_head(), DOWN, seed=1, spacing=4.0)
+        inside = sitk.GetArrayFromImage(cone).astype(bool)
+        assert (sitk.GetArrayFromImage(same_cone) == sitk.GetArrayFromImage(cone)).all()
+        expected = np.clip(10 * np.log10(np.maximum(sitk.GetArrayFromImage(raw), 1e-30)) / DYNAMIC_RANGE_DB + 1,
+                           B_MODE_FLOOR, 1.0)
+        np.testing.assert_allclose(sitk.GetArrayFromImage(shown)[inside], expected[inside], atol=1e-5)
+        assert (sitk.GetArrayFromImage(shown)[~inside] == 0).all() and (sitk.GetArrayFromImage(shown)[inside] > 0).all()
+
+    def test_a_bad_range_is_refused_before_simulating(self):
+        with pytest.raises(InputError, match="dynamic_range_db"):
+            ultrasound_image(_head(), DOWN, dynamic_range_db=0.0)
