@@ -37,11 +37,12 @@ from dpcn_med.benchmark import METHODS, available_methods
 from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
 from dpcn_med.geometry import homogeneous_matrix, similarity_transform
 from dpcn_med.io import write_csv
+from dpcn_med.outputs import RegistrationSettings
 from dpcn_med.preprocess import foreground_mask
-from dpcn_med.refine import Refinement, choose_and_refine, metric_masks
+from dpcn_med.refine import Refinement, choose_and_refine, metric_masks, ultrasound_side
 from dpcn_med.registration import register
 from dpcn_med.synth import UltrasoundConfig, pseudo_ct
-from dpcn_med.synth.ultrasound_image import Craniotomy, ultrasound_image
+from dpcn_med.synth.ultrasound_image import DYNAMIC_RANGE_DB, Craniotomy, ultrasound_image
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from markdown import count_type, generated_by, publish  # noqa: E402  (the scripts' shared helpers)
@@ -70,7 +71,7 @@ BASELINES = ["sitk-geometry", "sitk-moments", "sitk-exhaustive", "ants-rigid", "
 SAME_POSES = "dpcn-baseline-poses"
 FROM_TRUTH = "refine-from-truth"
 """The method name of the refinement alone, started at the true pose (:func:`refined_from_truth`)."""
-ROW_FIELDS = ["case", "trial", "method", "tre_mm", "seconds"]
+ROW_FIELDS = ["case", "trial", "method", "tre_mm", "seconds", "flagged"]
 
 
 def volumes() -> dict[str, sitk.Image]:
@@ -105,17 +106,21 @@ def trials(whole: dict[str, sitk.Image], count: int, seed: int):
         yield trial, cone, truth, points
 
 
-def refined_from_truth(fixed: sitk.Image, moving: sitk.Image, truth: sitk.Transform) -> sitk.Transform:
-    """dpcn_med's refinement (:func:`dpcn_med.refine.choose_and_refine`, the defaults) from ``truth`` alone, the
-    metric sampled on the fixed foreground dilated as :func:`dpcn_med.register` samples it."""
+def refined_from_truth(fixed: sitk.Image, moving: sitk.Image, modalities: tuple[str, str],
+                       truth: sitk.Transform) -> sitk.Transform:
+    """dpcn_med's refinement (:func:`dpcn_med.refine.choose_and_refine`, the defaults) from ``truth`` alone, with the
+    similarity and the masks :func:`dpcn_med.register` uses for these ``(fixed, moving)`` modalities (LC2 on the
+    ultrasound's cone)."""
     start = similarity_transform(homogeneous_matrix(truth), np.asarray(truth.GetFixedParameters()[:3]), rigid=True)
-    masks = metric_masks(None, foreground_mask(fixed), None, Refinement())
-    return choose_and_refine(fixed, moving, [start], masks).fixed_to_moving
+    ultrasound = ultrasound_side(*modalities)
+    masks = metric_masks(None, foreground_mask(fixed), None, Refinement(), ultrasound=ultrasound)
+    return choose_and_refine(fixed, moving, [start], masks, ultrasound=ultrasound).fixed_to_moving
 
 
 def run(cases: list[str], count: int, seed: int, methods: list[str], baseline_trials: int,
         figure: Path | None) -> list[dict]:
-    """One row per case, pose and method: ``case``, ``trial``, ``method``, ``tre_mm``, ``seconds``."""
+    """One row per case, pose and method: ``case``, ``trial``, ``method``, ``tre_mm``, ``seconds`` and, for dpcn_med
+    with its defaults, ``flagged``: whether the command line would exit 3 (likely wrong; ``""`` for the others)."""
     whole = volumes()
     rows = []
     folder = Path(tempfile.mkdtemp(prefix="dpcn-med-ultrasound-"))
@@ -131,11 +136,13 @@ def run(cases: list[str], count: int, seed: int, methods: list[str], baseline_tr
                     if method not in ("dpcn", FROM_TRUTH) and trial >= baseline_trials:
                         continue
                     started = time.perf_counter()
+                    flagged = ""
                     if method == "dpcn":
-                        estimate = register(fixed, moving, fixed_modality=fixed_name,
-                                            moving_modality=moving_name).fixed_to_moving
+                        result = register(fixed, moving, fixed_modality=fixed_name, moving_modality=moving_name)
+                        estimate = result.fixed_to_moving
+                        flagged = RegistrationSettings().flagged(result.to_dict())
                     elif method == FROM_TRUTH:
-                        estimate = refined_from_truth(fixed, moving, truth)
+                        estimate = refined_from_truth(fixed, moving, (fixed_name, moving_name), truth)
                     else:
                         try:
                             estimate = METHODS[method][2](fixed, moving, folder)
@@ -145,7 +152,7 @@ def run(cases: list[str], count: int, seed: int, methods: list[str], baseline_tr
                             estimate = sitk.Transform(3, sitk.sitkIdentity)
                     rows.append({"case": case, "trial": trial, "method": method,
                                  "tre_mm": target_registration_error(estimate, truth, points),
-                                 "seconds": time.perf_counter() - started})
+                                 "seconds": time.perf_counter() - started, "flagged": flagged})
                     print(f"{case} #{trial} {method}: {rows[-1]['tre_mm']:.2f} mm, {rows[-1]['seconds']:.1f} s",
                           file=sys.stderr)
     finally:
@@ -177,8 +184,9 @@ def cone_figure(cone: sitk.Image, mr: sitk.Image, path: Path) -> None:
 def table(rows: list[dict], methods: list[str], baseline_trials: int) -> str:
     """The markdown table: a line per case and method: dpcn_med, its refinement from the truth, dpcn_med on the
     baselines' poses, the baselines."""
-    lines = [f"| case | method | poses | success (TRE < {SUCCESS_MM:g} mm) | median TRE (mm) | median s |",
-             "|---|---|---|---|---|---|"]
+    header = (f"| case | method | poses | success (TRE < {SUCCESS_MM:g} mm) | median TRE (mm) | median s | "
+              "flagged as likely wrong |")
+    lines = [header, "|---|---|---|---|---|---|---|"]
     shown = [("dpcn", "dpcn_med (defaults)")]
     if FROM_TRUTH in methods:
         shown.append((FROM_TRUTH, "dpcn_med's refinement alone, from the true pose"))
@@ -197,9 +205,11 @@ def table(rows: list[dict], methods: list[str], baseline_trials: int) -> str:
                 continue
             errors = [r["tre_mm"] for r in chosen]
             success = sum(e < SUCCESS_MM for e in errors)
+            flags = [r.get("flagged") for r in chosen if r.get("flagged") not in (None, "")]
+            flagged = "" if not flags else f"{sum(flag in (True, 'True') for flag in flags)} of {len(flags)}"
             lines.append(f"| {case} | {label} | {len(chosen)} | {success} of {len(chosen)} "
                          f"({100 * success / len(chosen):.0f}%) | {statistics.median(errors):.1f} | "
-                         f"{statistics.median(r['seconds'] for r in chosen):.1f} |")
+                         f"{statistics.median(r['seconds'] for r in chosen):.1f} | {flagged} |")
     return "\n".join(lines) + "\n"
 
 
@@ -228,8 +238,9 @@ def main(argv: list[str] | None = None) -> int:
             f"machine's CPU. Cases: " + "; ".join(f"`{c}` {CASES[c][0]}" for c in args.cases) + ". "
             f"Rotation uniform over SO(3), shift up to {MAX_SHIFT_MM:g} mm, TRE over the corners of the cone's "
             f"bounding box. Simulator: {settings}; craniotomy radius {CRANIOTOMY_MM[0]:g}-{CRANIOTOMY_MM[1]:g} mm, "
-            f"probe within {MAX_TILT_DEGREES:g} degrees of the vertex. No model is trained on ultrasound yet: "
-            "dpcn_med runs learning-free."
+            f"probe within {MAX_TILT_DEGREES:g} degrees of the vertex; echoes log-compressed over "
+            f"{DYNAMIC_RANGE_DB:g} dB (B-mode, as a scanner exports them). No model is trained on ultrasound yet: "
+            "dpcn_med runs learning-free, and refines with LC2 on the cone (one image is ultrasound)."
             + (f" Not installed, not run: {', '.join(missing)}." if missing else "")
             + "\n\n![the first trial's cone](ultrasound.png)\n\n" + table(rows, methods, args.baseline_trials)
             + f"\nPer pose: [{args.output.with_suffix('.csv').name}]({args.output.with_suffix('.csv').name}).\n")

@@ -2,8 +2,8 @@
 
 Exit codes: 0 success; 2 bad input (one line on stderr naming the file and the problem, nothing written); 3 result
 written but flagged as likely wrong (its success probability below ``--min-probability``, or with ``--no-refine`` the
-solver's confidence below ``--min-confidence``); 130 interrupted (Ctrl-C or SIGTERM), nothing written
-for the unfinished pair; 1 internal error.
+solver's confidence below ``--min-confidence``; every refined ultrasound registration, which nothing verifies yet);
+130 interrupted (Ctrl-C or SIGTERM), nothing written for the unfinished pair; 1 internal error.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 from dpcn_med import __version__
 from dpcn_med.errors import InputError
 from dpcn_med.modalities import MODALITIES
-from dpcn_med.outputs import MIN_CONFIDENCE, OUTPUT_NAMES, RegistrationSettings, check_output_folder
+from dpcn_med.outputs import MIN_CONFIDENCE, OUTPUT_NAMES, RegistrationSettings, check_output_folder, unverified
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_LOW_CONFIDENCE = 0, 1, 2, 3
 
@@ -232,6 +232,10 @@ def _summary_line(report: dict) -> str:
 def _flag_message(report: dict, settings: RegistrationSettings, look: str) -> str:
     """The warning for a flagged result: the number that flagged it, what it measures, and what to look at."""
     probability = report.get("success_probability")
+    if probability is None and unverified(report):
+        return ("dpcn-med: warning: the result is not verified: nothing yet tells a right ultrasound registration "
+                "from a wrong one, and from any pose but a nearly right stored one (a tracked probe's) dpcn_med "
+                f"registers none yet (docs/benchmarks/ultrasound.md). It is written: {look}")
     if probability is None:
         return (f"dpcn-med: warning: confidence {report['confidence']:.4f} is below {settings.min_confidence}; the "
                 f"result is written but may be wrong: {look}")

@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from dpcn_med.geometry import axis_angle_to_matrix
+from dpcn_med.lc2 import MIN_WINDOW_SHARE, WINDOW, negative_lc2
 from dpcn_med.mutual_information import fixed_bins, negative_mutual_information
 
 MIN_SMOOTHING_VOXELS = 0.2
@@ -179,9 +180,17 @@ def sample(image: Volume, points: Tensor, *, mode: str = "bilinear") -> tuple[Te
     linear interpolator: the image spans half a voxel beyond its edge voxels' centres, where the edge value holds;
     outside that ``inside`` is false. Differentiable in ``points`` (``mode="bilinear"`` is trilinear on a
     volume)."""
+    grid, inside = _normalised(image, points)
+    return _sample_normalised(image, grid, mode), inside
+
+
+def _normalised(image: Volume, points: Tensor) -> tuple[Tensor, Tensor]:
+    """``points`` ``(K, N, 3)`` physical in ``grid_sample``'s coordinates of ``image``, and whether each lies inside
+    it (within half a voxel beyond its edge voxels' centres, as ITK's linear interpolator reads)."""
     matrix = torch.as_tensor(image.physical_to_normalised(), dtype=points.dtype, device=points.device)
     grid = points @ matrix[:3, :3].T + matrix[:3, 3]
-    return _sample_normalised(image, grid, mode)
+    half_voxel = torch.as_tensor(1 / np.maximum(image.size - 1, 1), dtype=grid.dtype, device=grid.device)
+    return grid, (grid.detach().abs() <= 1 + half_voxel).all(-1)
 
 
 def with_gradient(image: Volume) -> Volume:
@@ -230,16 +239,13 @@ class _SmoothGradientSample(torch.autograd.Function):
         return None, (gradients * upstream).T
 
 
-def _sample_normalised(image: Volume, grid: Tensor, mode: str) -> tuple[Tensor, Tensor]:
+def _sample_normalised(image: Volume, grid: Tensor, mode: str) -> Tensor:
     poses, count = grid.shape[:2]
-    half_voxel = torch.as_tensor(1 / np.maximum(image.size - 1, 1), dtype=grid.dtype, device=grid.device)
-    inside = (grid.detach().abs() <= 1 + half_voxel).all(-1)
     if image.values.shape[1] == 4 and mode == "bilinear":
-        return _SmoothGradientSample.apply(image.values, grid.reshape(-1, 3)).reshape(poses, count), inside
+        return _SmoothGradientSample.apply(image.values, grid.reshape(-1, 3)).reshape(poses, count)
     # One batch of K * N points: grid_sample wants as many input volumes as grids, and an expanded volume is copied.
-    values = F.grid_sample(image.values[:, :1], grid.reshape(1, 1, 1, poses * count, 3), mode=mode,
-                           padding_mode="border", align_corners=True).reshape(poses, count)
-    return values, inside
+    return F.grid_sample(image.values[:, :1], grid.reshape(1, 1, 1, poses * count, 3), mode=mode,
+                         padding_mode="border", align_corners=True).reshape(poses, count)
 
 
 def residual_matrices(parameters: Tensor, centre: np.ndarray, radius: float) -> Tensor:
@@ -277,6 +283,110 @@ class Level:
             in_mask, inside = sample(self.moving_mask, mapped.detach(), mode="nearest")
             valid = valid & inside & (in_mask > 0.5)
         return negative_mutual_information(self.samples.bins, values, valid, self.moving_range, self.bins)
+
+
+@dataclass(frozen=True)
+class CorrelationLevel:
+    """One level of the search where one image is ultrasound, scored by LC2 (:mod:`dpcn_med.lc2`) in windows that
+    tile the ultrasound's grid, whichever side it is.
+
+    Attributes:
+        samples: the fixed image's :class:`Samples` of the level, for the step's scale (its radius and spacing) and
+            for telling poses apart, as on a mutual-information :class:`Level`.
+        ultrasound: ``(1, T, V)`` the ultrasound in ``T`` windows of ``V`` voxels, scaled to ``[0, 1]`` inside.
+        inside: ``(1, T, V)`` bool, where the ultrasound holds data (its cone, within its mask).
+        points: ``(T * V, 3)`` float32 physical points of those voxels (the ultrasound's space).
+        other: ``(1, 2, z, y, x)`` the other image's intensity and gradient magnitude on its level, each scaled to
+            ``[0, 1]``.
+        other_mask: the other image's mask, or ``None``.
+        ultrasound_fixed: whether the ultrasound is the fixed image (a pose maps its points to the other image) or
+            the moving one (the pose's inverse does).
+    """
+
+    samples: Samples
+    ultrasound: Tensor
+    inside: Tensor
+    points: Tensor
+    other: Volume
+    other_mask: Volume | None
+    ultrasound_fixed: bool
+
+    def metric(self, starts: Tensor, parameters: Tensor, centre: np.ndarray) -> Tensor:
+        """``-LC2`` ``(K,)`` of the poses ``starts @ D(parameters)`` (``starts`` ``(K, 4, 4)`` float64)."""
+        poses = starts @ residual_matrices(parameters, centre, self.samples.radius)
+        if not self.ultrasound_fixed:
+            poses = torch.linalg.inv(poses)
+        poses = poses.float()
+        mapped = self.points.unsqueeze(0) @ poses[:, :3, :3].transpose(1, 2) + poses[:, None, :3, 3]
+        grid, valid = _normalised(self.other, mapped)
+        values = F.grid_sample(self.other.values, grid.reshape(1, 1, 1, -1, 3), mode="bilinear",
+                               padding_mode="border", align_corners=True).reshape(2, *valid.shape)
+        if self.other_mask is not None:
+            in_mask, inside = sample(self.other_mask, mapped.detach(), mode="nearest")
+            valid = valid & inside & (in_mask > 0.5)
+        shape = (len(poses), *self.inside.shape[1:])
+        valid = valid.reshape(shape) & self.inside
+        return negative_lc2(self.ultrasound, values[0].reshape(shape), values[1].reshape(shape), valid)
+
+
+def correlation_level(ultrasound: Volume, inside: Tensor, other: Volume, other_mask: Volume | None,
+                      samples: Samples, ultrasound_fixed: bool, window: int = WINDOW) -> CorrelationLevel:
+    """A :class:`CorrelationLevel` from the two images' levels (:func:`pyramid_level`): ``ultrasound`` and
+    ``inside`` ``(1, 1, Z, Y, X)`` bool (where it holds data) on one grid, and ``other``. The windows are cubes of
+    ``window`` voxels from the first voxel of ``inside``'s box on; those at least :data:`MIN_WINDOW_SHARE` inside
+    are kept."""
+    inside = inside[0, 0]
+    where = inside.nonzero()
+    low = where.min(0).values if len(where) else torch.zeros(3, dtype=torch.long, device=inside.device)
+    counts = ((where.max(0).values + 1 - low + window - 1) // window) if len(where) else torch.ones(
+        3, dtype=torch.long, device=inside.device)
+    size = counts * window
+    padded = torch.zeros(tuple(int(n) for n in size), dtype=torch.bool, device=inside.device)
+    values = torch.zeros(padded.shape, dtype=ultrasound.values.dtype, device=inside.device)
+    available = torch.minimum(size, torch.as_tensor(inside.shape, device=inside.device) - low)
+    box = tuple(slice(int(a), int(a + n)) for a, n in zip(low, available, strict=True))
+    region = tuple(slice(0, int(n)) for n in available)
+    padded[region], values[region] = inside[box], ultrasound.values[0, 0][box]
+
+    inside_tiles, value_tiles = _tiles(padded, counts, window), _tiles(values, counts, window)
+    kept = inside_tiles.sum(1) >= MIN_WINDOW_SHARE * window ** 3
+    inside_tiles, value_tiles = inside_tiles[kept], value_tiles[kept]
+    inner = value_tiles[inside_tiles]
+    low_value, high_value = (float(inner.min()), float(inner.max())) if len(inner) else (0.0, 1.0)
+    scaled = ((value_tiles - low_value) / max(high_value - low_value, 1e-12)).clamp(0, 1)
+    index = torch.stack(torch.meshgrid(*[torch.arange(int(n), dtype=torch.float64) for n in size],
+                                       indexing="ij"), dim=-1) + low.cpu().double()  # (z, y, x) indices
+    index = _tiles(index, counts.cpu(), window)[kept.cpu()].reshape(-1, 3).flip(-1)  # (x, y, z)
+    to_physical = torch.as_tensor(ultrasound.index_to_physical())
+    points = (index @ to_physical[:3, :3].T + to_physical[:3, 3]).float()
+    return CorrelationLevel(samples=samples, ultrasound=scaled.unsqueeze(0), inside=inside_tiles.unsqueeze(0),
+                            points=points.to(inside.device), other=_intensity_and_gradient(other),
+                            other_mask=other_mask, ultrasound_fixed=ultrasound_fixed)
+
+
+def _tiles(volume: Tensor, counts: Tensor, window: int) -> Tensor:
+    """``volume`` ``(Z, Y, X, ...)``, ``counts * window`` voxels along its first three axes, as ``(T, window ** 3,
+    ...)``: its ``T`` cubes of ``window`` voxels in raster order, each cube's voxels in raster order."""
+    z, y, x = (int(n) for n in counts)
+    rest = tuple(volume.shape[3:])
+    order = (0, 2, 4, 1, 3, 5, *range(6, 6 + len(rest)))
+    return volume.reshape(z, window, y, window, x, window, *rest).permute(order).reshape(z * y * x, window ** 3, *rest)
+
+
+def _intensity_and_gradient(image: Volume) -> Volume:
+    """``image`` ``(1, 1, z, y, x)`` as ``(1, 2, z, y, x)``: its intensity and its gradient magnitude (central
+    differences in mm), each scaled to ``[0, 1]`` over the image."""
+    values = image.values[0, 0]
+    spacing = [float(length) for length in image.spacing[::-1]]  # z, y, x
+    gradient = torch.stack([torch.gradient(values, spacing=length, dim=dim)[0] if values.shape[dim] > 1
+                            else torch.zeros_like(values) for dim, length in enumerate(spacing)]).norm(dim=0)
+
+    def unit(channel: Tensor) -> Tensor:
+        low, high = channel.min(), channel.max()
+        return (channel - low) / (high - low).clamp_min(1e-12)
+
+    channels = torch.stack([unit(values), unit(gradient)]).unsqueeze(0).contiguous()
+    return Volume(values=channels, origin=image.origin, spacing=image.spacing, direction=image.direction)
 
 
 PACE_STEPS = 5

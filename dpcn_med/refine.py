@@ -1,9 +1,10 @@
 """The local refinement: SimpleITK Mattes mutual information from the global candidates, and the choice among them.
 
 :func:`choose_and_refine` is the fourth step of :func:`dpcn_med.register`: every start (the solver's candidates, the
-stored pose last) runs the coarsest level of one shared image pyramid (:func:`image_pyramid`), the best go on level by
-level (:func:`refine_candidates`), and the refined transform is kept only where it lowers the metric. The settings
-are :class:`Refinement`; the measurements behind them are in docs/design_notes/registration.md.
+stored pose last) runs the coarsest level of one shared image pyramid (:func:`search_levels`), the best go on level by
+level (:func:`refine_candidates`), and the refined transform is kept only where it lowers the metric. Where one image
+is ultrasound the metric is LC2 on the ultrasound's grid instead (:func:`correlation_levels`). The settings are
+:class:`Refinement`; the measurements behind them are in docs/design_notes/registration.md.
 
 Convention:
     Every transform maps fixed points to moving points (ITK's resampling direction), LPS mm. ``masks`` are
@@ -13,6 +14,7 @@ Convention:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -25,8 +27,10 @@ from dpcn_med.arguments import check_flag, check_integer, check_real, check_sequ
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import homogeneous_matrix, similarity_transform
 from dpcn_med.local_search import (
+    CorrelationLevel,
     Level,
     Samples,
+    correlation_level,
     fixed_samples,
     itk_step_weights,
     pyramid_level,
@@ -54,7 +58,9 @@ own voxel (why this share: docs/design_notes/registration.md)."""
 @dataclass(frozen=True)
 class Refinement:
     """Settings of the local Mattes mutual-information refinement (SimpleITK), defined once (the measurements behind
-    the defaults: docs/design_notes/registration.md).
+    the defaults: docs/design_notes/registration.md). Where one image is ultrasound the refinement scores LC2 on one
+    level instead (:data:`ULTRASOUND_PYRAMID`, :data:`ULTRASOUND_STARTS`): ``shrink_factors``, ``smoothing_mm``,
+    ``histogram_bins`` and ``survivors`` do not apply to it.
 
     Attributes:
         shrink_factors: image pyramid, coarse to fine (integers >= 1).
@@ -176,12 +182,14 @@ def _mm(lengths: np.ndarray) -> str:
 
 
 def metric_masks(fixed_mask: sitk.Image | None, fixed_foreground: sitk.Image, moving_mask: sitk.Image | None,
-                 settings: Refinement) -> Masks:
+                 settings: Refinement, *, ultrasound: str | None = None) -> Masks:
     """Where the metric is sampled: the user's masks; without a fixed one, the fixed foreground dilated by
-    ``settings.mask_margin_voxels`` (background air otherwise dominates the joint histogram)."""
-    sampled = fixed_mask if fixed_mask is not None else sitk.BinaryDilate(
-        fixed_foreground, [settings.mask_margin_voxels] * 3)
-    return sampled, moving_mask
+    ``settings.mask_margin_voxels`` (background air otherwise dominates the joint histogram), unless the fixed image
+    is the ``ultrasound`` (``"fixed"``): its foreground is its brightest echoes, and LC2 reads the whole cone
+    (:func:`correlation_levels`)."""
+    if fixed_mask is not None or ultrasound == "fixed":
+        return fixed_mask, moving_mask
+    return sitk.BinaryDilate(fixed_foreground, [settings.mask_margin_voxels] * 3), moving_mask
 
 
 def _registration_method(fixed: sitk.Image, masks: Masks, settings: Refinement) -> sitk.ImageRegistrationMethod:
@@ -262,11 +270,13 @@ class Choice:
         index: the start it kept, an index into its ``starts``.
         fixed_to_moving: that start refined, or the start itself where refining did not lower the metric.
         refined: whether ``fixed_to_moving`` is the refined transform.
-        metric: Mattes mutual information at ``"stored"`` (identity), ``"dpc"`` (the start kept) and ``"refined"``
-            on the finest level's samples (``None`` where the pose leaves no overlap, or nothing was refined).
+        metric: the similarity (lower is better) at ``"stored"`` (identity), ``"dpc"`` (the start kept) and
+            ``"refined"`` on the finest level (``None`` where the pose leaves no overlap, or nothing was refined).
         candidate_metrics: each start's metric after the coarsest level (``None`` without overlap).
         fixed_entropy: entropy (nats) of the finest level's fixed samples over the metric's bins, the most mutual
-            information a pose can reach with them (``None`` without refinement): the metric's own scale.
+            information a pose can reach with them (``None`` without refinement, or with LC2): the metric's own
+            scale.
+        similarity: ``"mattes"`` (``-MI``, nats) or ``"lc2"`` (``-LC2``, where one image is ultrasound).
     """
 
     index: int
@@ -275,6 +285,7 @@ class Choice:
     metric: dict[str, float | None]
     candidate_metrics: list[float | None]
     fixed_entropy: float | None = None
+    similarity: str = "mattes"
 
 
 def search_levels(fixed: sitk.Image, moving: sitk.Image, masks: Masks, centre: np.ndarray,
@@ -296,9 +307,63 @@ def search_levels(fixed: sitk.Image, moving: sitk.Image, masks: Masks, centre: n
     return levels
 
 
+ULTRASOUND_SIDES = ("fixed", "moving")
+
+
+def ultrasound_side(fixed_modality: str, moving_modality: str) -> str | None:
+    """Which image the refinement scores as ultrasound (by LC2) for a pair of modalities as used (``"ct"``,
+    ``"mr"``, ``"us"``): ``"fixed"`` or ``"moving"`` where exactly one is ``"us"``, else ``None`` (Mattes mutual
+    information; two ultrasound volumes share their kind of intensities)."""
+    if (fixed_modality == "us") == (moving_modality == "us"):
+        return None
+    return "fixed" if fixed_modality == "us" else "moving"
+
+
+ULTRASOUND_PYRAMID = {"shrink_factors": (1,), "smoothing_mm": (0.0,)}
+"""The LC2 search's one level: the images as they are. Coarser or smoother levels first led it away from the true
+pose on the benchmark's cones (docs/design_notes/registration.md)."""
+
+ULTRASOUND_STARTS = 2
+"""Starts refined by LC2, those of best LC2 where they are (:func:`_refine_best_starts`)."""
+
+
+def correlation_levels(fixed: sitk.Image, moving: sitk.Image, masks: Masks, centre: np.ndarray, ultrasound: str,
+                       settings: Refinement = Refinement(), device: torch.device = CPU) -> list[CorrelationLevel]:
+    """The search's levels, coarse to fine, where the ``ultrasound`` image (``"fixed"`` or ``"moving"``) is scored
+    by LC2 against the other (:class:`dpcn_med.local_search.CorrelationLevel`): both images smoothed and shrunk as
+    in :func:`search_levels`.
+
+    The ultrasound holds data where it is nonzero (outside its cone a scanner writes 0) and inside its mask; on each
+    level, where that stays whole after the level's smoothing and shrinking (a voxel the smoothing mixed with the
+    outside is left out). The other image's mask restricts where it is read. Both images are taken as read: far
+    outliers are clipped here (:func:`dpcn_med.preprocess.clip_outliers`), after the ultrasound's zeros are found."""
+    us_image, other_image = (fixed, moving) if ultrasound == "fixed" else (moving, fixed)
+    us_mask, other_mask = masks if ultrasound == "fixed" else masks[::-1]
+    inside = sitk.Cast(us_image != 0, sitk.sitkUInt8)
+    us_image, other_image = clip_outliers(us_image), clip_outliers(other_image)
+    if us_mask is not None:
+        inside = inside * sitk.Resample(sitk.Cast(us_mask > 0, sitk.sitkUInt8), us_image, sitk.Transform(),
+                                        sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
+    us_volume, inside_volume = volume(us_image, device), volume(inside, device)
+    other_volume = volume(other_image, device)
+    other_mask_volume = None if other_mask is None else volume(other_mask, device)
+    generator = torch.Generator().manual_seed(settings.seed)
+    levels = []
+    for factor, sigma in zip(settings.shrink_factors, settings.smoothing_mm, strict=True):
+        us_factors = level_factors(us_image.GetSize(), factor)
+        us_level = pyramid_level(us_volume, us_factors, sigma)
+        whole = pyramid_level(inside_volume, us_factors, sigma).values >= 0.999
+        other_level = pyramid_level(other_volume, level_factors(other_image.GetSize(), factor), sigma)
+        samples = fixed_samples(us_level if ultrasound == "fixed" else other_level, masks[0], settings.samples,
+                                settings.histogram_bins, centre, generator)
+        levels.append(correlation_level(us_level, whole, other_level, other_mask_volume, samples,
+                                        ultrasound_fixed=ultrasound == "fixed"))
+    return levels
+
+
 def choose_and_refine(fixed: sitk.Image, moving: sitk.Image, starts: list[sitk.Transform], masks: Masks,
                       settings: Refinement = Refinement(), progress: Callable[[float], None] | None = None,
-                      device: torch.device = CPU) -> Choice:
+                      device: torch.device = CPU, ultrasound: str | None = None) -> Choice:
     """Refine every start (:func:`refine_candidates`), keep the best, and keep its refined transform only if that
     lowers the metric on the finest level.
 
@@ -310,14 +375,26 @@ def choose_and_refine(fixed: sitk.Image, moving: sitk.Image, starts: list[sitk.T
         masks: where the metric is sampled (:func:`metric_masks`).
         progress: called with the fraction of the refinement done, in ``[0, 1]``.
         device: where the search runs (the solver's device).
+        ultrasound: which image is ultrasound, ``"fixed"`` or ``"moving"``: the search scores LC2
+            (:func:`correlation_levels`) instead of Mattes mutual information, and the choice's ``metric`` holds
+            ``-LC2`` (``fixed_entropy`` is then ``None``); ``None``: neither.
     """
-    # The metric's histogram spans each image's range: far outliers would squeeze the anatomy into its first bin.
-    fixed_values, moving_values = clip_outliers(fixed), clip_outliers(moving)
+    if ultrasound is not None and ultrasound not in ULTRASOUND_SIDES:
+        raise InputError(f"ultrasound is {ultrasound!r}; expected one of {ULTRASOUND_SIDES} or None")
     centre = np.asarray(starts[0].GetFixedParameters()[:3])
     rigid = starts[0].GetName() == "VersorRigid3DTransform"
-    levels = search_levels(fixed_values, moving_values, masks, centre, settings, device)
+    levels: list[Level] | list[CorrelationLevel]
+    if ultrasound is None:
+        # The metric's histogram spans each image's range: far outliers would squeeze the anatomy into its first bin.
+        levels = search_levels(clip_outliers(fixed), clip_outliers(moving), masks, centre, settings, device)
+    else:
+        settings = dataclasses.replace(settings, **ULTRASOUND_PYRAMID)
+        levels = correlation_levels(fixed, moving, masks, centre, ultrasound, settings, device)
     matrices = torch.as_tensor(np.stack([homogeneous_matrix(start) for start in starts]), device=device)
-    index, refined, candidate_metrics = refine_candidates(levels, matrices, centre, rigid, settings, progress)
+    if ultrasound is None:
+        index, refined, candidate_metrics = refine_candidates(levels, matrices, centre, rigid, settings, progress)
+    else:
+        index, refined, candidate_metrics = _refine_best_starts(levels, matrices, centre, rigid, settings, progress)
     finest = levels[-1]
     checked = torch.stack([torch.eye(4, dtype=torch.float64, device=device), matrices[index],
                            matrices[index] if refined is None else refined])
@@ -325,14 +402,41 @@ def choose_and_refine(fixed: sitk.Image, moving: sitk.Image, starts: list[sitk.T
                            centre).tolist()
     metric: dict[str, float | None] = {key: value if math.isfinite(value) else None
                                        for key, value in zip(("stored", "dpc", "refined"), values)}
-    entropy = bin_entropy(finest.samples.bins, finest.bins)
+    entropy = bin_entropy(finest.samples.bins, finest.bins) if ultrasound is None else None
+    similarity = "mattes" if ultrasound is None else "lc2"
     if refined is None or metric["dpc"] is None:
         metric["refined"] = None
     # The local optimiser only ever starts from a global estimate; keep it only if it improved the metric.
     elif metric["refined"] is not None and metric["refined"] <= metric["dpc"]:
         transform = similarity_transform(refined.cpu().numpy(), centre, rigid=rigid)
-        return Choice(index, transform, True, metric, candidate_metrics, entropy)
-    return Choice(index, starts[index], False, metric, candidate_metrics, entropy)
+        return Choice(index, transform, True, metric, candidate_metrics, entropy, similarity)
+    return Choice(index, starts[index], False, metric, candidate_metrics, entropy, similarity)
+
+
+def _refine_best_starts(levels: list[CorrelationLevel], starts: torch.Tensor, centre: np.ndarray, rigid: bool,
+                        settings: Refinement, progress: Callable[[float], None] | None
+                        ) -> tuple[int, torch.Tensor | None, list[float | None]]:
+    """:func:`refine_candidates` on LC2 levels from the :data:`ULTRASOUND_STARTS` starts of best LC2 as they are, and
+    the last start (the stored pose, where it is one).
+
+    LC2 holds the true pose only within a few millimetres (docs/design_notes/registration.md): a start farther off
+    stays about where it was, at about its value, so one batched evaluation ranks them at a fraction of refining
+    each. The starts left out keep that value as their metric."""
+    count = 6 if rigid else 7
+    with torch.no_grad():
+        values = levels[0].metric(starts, torch.zeros(len(starts), count, dtype=torch.float64,
+                                                      device=starts.device), centre)
+    ranked = [index for index in torch.argsort(values).tolist() if math.isfinite(float(values[index]))]
+    # The last start (the stored pose, where it is one) always goes on: a tracked probe's pose is right within LC2's
+    # reach, and a wrong pose elsewhere in the head can hold more LC2 before refining.
+    kept = sorted(set(ranked[:ULTRASOUND_STARTS]) | ({len(starts) - 1} & set(ranked)))
+    metrics: list[float | None] = [float(value) if math.isfinite(float(value)) else None for value in values]
+    if not kept:
+        return 0, None, metrics
+    index, refined, refined_metrics = refine_candidates(levels, starts[kept], centre, rigid, settings, progress)
+    for place, value in zip(kept, refined_metrics, strict=True):
+        metrics[place] = value
+    return kept[index], refined, metrics
 
 
 def refine_candidates(levels: list[Level], starts: torch.Tensor, centre: np.ndarray, rigid: bool,

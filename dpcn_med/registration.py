@@ -53,6 +53,7 @@ from dpcn_med.refine import (
     check_mask_extent,
     choose_and_refine,
     metric_masks,
+    ultrasound_side,
 )
 from dpcn_med.result import RegistrationResult, describe_transform  # noqa: F401  (public here too)
 from dpcn_med.solver import SolverConfig, StageTemperatures, solve
@@ -356,9 +357,12 @@ def _choose_and_refine(inputs: _Inputs, grids: _Grids, starts: _Starts, options:
         return Choice(index=0, fixed_to_moving=starts.candidates[0][0], refined=False,
                       metric={"stored": None, "dpc": None, "refined": None}, candidate_metrics=[])
     with clock.step("refine", "refining", 0.4):
-        masks = metric_masks(inputs.fixed_mask, grids.fixed.foreground, inputs.moving_mask, options.refinement)
+        ultrasound = ultrasound_side(grids.fixed.modality, grids.moving.modality)
+        masks = metric_masks(inputs.fixed_mask, grids.fixed.foreground, inputs.moving_mask, options.refinement,
+                             ultrasound=ultrasound)
         return choose_and_refine(inputs.fixed, inputs.moving, starts.transforms, masks, options.refinement,
-                                 lambda fraction: clock.report("refining", 0.4 + 0.5 * fraction), options.device)
+                                 lambda fraction: clock.report("refining", 0.4 + 0.5 * fraction), options.device,
+                                 ultrasound=ultrasound)
 
 
 def _result(inputs: _Inputs, grids: _Grids, starts: _Starts, choice: Choice, options: _Options,
@@ -380,7 +384,7 @@ def _result(inputs: _Inputs, grids: _Grids, starts: _Starts, choice: Choice, opt
         candidate_metrics=choice.candidate_metrics, mode=options.mode, bandwidth=options.bandwidth,
         fixed_grid=grids.fixed_grid, moving_grid=grids.moving_grid,
         modalities=(grids.fixed.modality, grids.moving.modality), metric=choice.metric, refined=choice.refined,
-        overlap=overlap, fixed_entropy=choice.fixed_entropy,
+        overlap=overlap, fixed_entropy=choice.fixed_entropy, similarity=choice.similarity,
         success_probability=None if values is None else shipped_model().probability(values), timings=clock.timings, device=str(options.device),
         model="learning-free" if options.network is None else os.fspath(options.model),
         fixed_image=inputs.fixed, moving_image=inputs.moving, resampled=resampled)

@@ -82,7 +82,8 @@ def registration_report(result: RegistrationResult, *, fixed: str | os.PathLike 
         "slicer_to_parent_ras": slicer_to_parent_ras(result.fixed_to_moving).tolist(),
         "conventions": "LPS millimetres; the transforms map fixed points to moving points (ITK's resampling "
                        "direction): sitk.Resample(moving, fixed, transform) aligns them. Slicer's to-parent RAS "
-                       "matrix is inv(F T F), F = diag(-1, -1, 1, 1). Mattes mutual information: lower is better.",
+                       "matrix is inv(F T F), F = diag(-1, -1, 1, 1). The similarity's values (Mattes mutual "
+                       "information, or -LC2 where one image is ultrasound): lower is better.",
         "outputs": list(outputs),
         "version": __version__,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),

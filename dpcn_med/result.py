@@ -10,6 +10,12 @@ import torch
 
 from dpcn_med.geometry import CanonicalGrid, homogeneous_matrix, rotation_angle, scale_and_rotation
 
+SIMILARITY_NAMES = {"mattes": "Mattes mutual information", "lc2": "LC2 (linear correlation of linear combination)"}
+"""What the refinement's similarity is, by :attr:`RegistrationResult.similarity`, in words."""
+
+SIMILARITY_KEYS = {"mattes": "mattes_mutual_information", "lc2": "negative_lc2"}
+"""The report's key of its values (``candidate_`` before it for the candidates'): the key names what they are."""
+
 
 @dataclass
 class RegistrationResult:
@@ -36,11 +42,13 @@ class RegistrationResult:
         fixed_grid: canonical cube of the fixed volume.
         moving_grid: canonical cube of the moving volume (same spacing).
         modalities: ``(fixed, moving)`` modality used for intensity normalisation.
-        metric: Mattes mutual information (SimpleITK's sign: lower is better) at ``"stored"`` (identity),
-            ``"dpc"`` and ``"refined"`` (``None`` without refinement, or where the pose leaves no overlap).
+        metric: the refinement's similarity (lower is better: Mattes mutual information with SimpleITK's sign, or
+            ``-LC2`` where one image is ultrasound; ``similarity`` says which) at ``"stored"`` (identity), ``"dpc"``
+            and ``"refined"`` (``None`` without refinement, or where the pose leaves no overlap).
         refined: whether ``fixed_to_moving`` is the refined transform.
         overlap: share of the fixed foreground that ``fixed_to_moving`` maps inside the moving image's field of view
             (:func:`field_of_view_overlap`).
+        similarity: ``"mattes"`` or ``"lc2"`` (:data:`SIMILARITY_NAMES`).
         fixed_entropy: entropy (nats) of the fixed samples over the metric's bins, the scale of ``metric`` (``None``
             without refinement).
         success_probability: how likely the result is right, by the quality model
@@ -70,6 +78,7 @@ class RegistrationResult:
     candidate_metrics: list[float | None] = field(default_factory=list)
     overlap: float = 1.0
     fixed_entropy: float | None = None
+    similarity: str = "mattes"
     success_probability: float | None = None
     timings: dict[str, float] = field(default_factory=dict)
     device: str = "cpu"
@@ -89,8 +98,9 @@ class RegistrationResult:
             "dpc": describe_transform(self.dpc_transform),
             "final": describe_transform(self.fixed_to_moving),
             "refined": self.refined, "candidate": self.candidate, "start": self.start,
-            "candidate_mattes_mutual_information": self.candidate_metrics, "overlap_fraction": self.overlap,
-            "mattes_mutual_information": self.metric, "fixed_entropy_nats": self.fixed_entropy,
+            "similarity": SIMILARITY_NAMES[self.similarity],
+            f"candidate_{SIMILARITY_KEYS[self.similarity]}": self.candidate_metrics, "overlap_fraction": self.overlap,
+            SIMILARITY_KEYS[self.similarity]: self.metric, "fixed_entropy_nats": self.fixed_entropy,
             "success_probability": self.success_probability,
             "timings_s": self.timings,
         }

@@ -415,14 +415,15 @@ class TestUltrasound:
 
     def test_the_table_counts_successes_and_repeats_dpcn_on_the_baselines_poses(self):
         module = script("ultrasound")
-        rows = [{"case": "us-mr", "trial": trial, "method": "dpcn", "tre_mm": tre, "seconds": 2.0}
-                for trial, tre in enumerate([1.0, 2.0, 3.0, 50.0])]
+        rows = [{"case": "us-mr", "trial": trial, "method": "dpcn", "tre_mm": tre, "seconds": 2.0, "flagged": flag}
+                for trial, (tre, flag) in enumerate([(1.0, False), (2.0, True), (3.0, True), (50.0, True)])]
         rows += [{"case": "us-mr", "trial": trial, "method": "sitk-exhaustive", "tre_mm": tre, "seconds": 9.0}
                  for trial, tre in enumerate([0.5, 79.5])]
         rows += [{"case": "us-mr", "trial": trial, "method": module.FROM_TRUTH, "tre_mm": 1.0, "seconds": 1.0}
                  for trial in range(4)]
         text = module.table(rows, ["dpcn", module.FROM_TRUTH, "sitk-exhaustive"], baseline_trials=2)
         assert text.index("from the true pose | 4 | 4 of 4 (100%)") < text.index("on the baselines' 2 poses")
-        assert "| us-mr | dpcn_med (defaults) | 4 | 2 of 4 (50%) | 2.5 | 2.0 |" in text
-        assert "| us-mr | dpcn_med, on the baselines' 2 poses | 2 | 2 of 2 (100%) | 1.5 | 2.0 |" in text
-        assert "| us-mr | SimpleITK MI after an exhaustive Euler-angle search | 2 | 1 of 2 (50%) | 40.0 | 9.0 |" in text
+        assert "| us-mr | dpcn_med (defaults) | 4 | 2 of 4 (50%) | 2.5 | 2.0 | 3 of 4 |" in text
+        assert "| us-mr | dpcn_med, on the baselines' 2 poses | 2 | 2 of 2 (100%) | 1.5 | 2.0 | 1 of 2 |" in text
+        assert ("| us-mr | SimpleITK MI after an exhaustive Euler-angle search | 2 | 1 of 2 (50%) | 40.0 | 9.0 "
+                "|  |") in text

@@ -39,6 +39,7 @@ LAYERS: dict[str, int] = {
     "dpcn_med.preprocess": 3,
     "dpcn_med.evaluation": 3,
     "dpcn_med.mutual_information": 3,
+    "dpcn_med.lc2": 3,
     # 2: the solver, torch only.
     "dpcn_med.solver": 2,
     # 1: the conventions and the files.
