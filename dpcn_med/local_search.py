@@ -347,7 +347,6 @@ def correlation_level(ultrasound: Volume, inside: Tensor, other: Volume, other_m
     box = tuple(slice(int(a), int(a + n)) for a, n in zip(low, available, strict=True))
     region = tuple(slice(0, int(n)) for n in available)
     padded[region], values[region] = inside[box], ultrasound.values[0, 0][box]
-
     inside_tiles, value_tiles = _tiles(padded, counts, window), _tiles(values, counts, window)
     kept = inside_tiles.sum(1) >= MIN_WINDOW_SHARE * window ** 3
     inside_tiles, value_tiles = inside_tiles[kept], value_tiles[kept]
