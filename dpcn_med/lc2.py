@@ -7,7 +7,7 @@ information assumes. LC2 fits the ultrasound locally, in every window of the ult
 ``alpha * I + beta * |grad I| + gamma`` of the other image's intensity ``I`` and gradient magnitude, and scores the
 share of the ultrasound's local variance that the fit explains. The windows' scores are pooled weighted by the
 ultrasound's local variance, so that textured windows count and flat ones (shadow, fluid) do not. A probe on the
-benchmark's cones (docs/benchmarks.md, "Ultrasound") found LC2 peaked within 4 mm of the true pose on 18 of 24
+benchmark's cones (docs/design_notes/registration.md) found LC2 peaked within 4 mm of the true pose on 18 of 24
 axis sweeps, Mattes mutual information on 2. No library offers it batched over poses on torch (ImFusion's is
 closed), hence our own.
 
