@@ -336,6 +336,15 @@ class TestProcess:
                        ).arguments() == ["--mode", "similarity", "--bandwidth", "16", "--device", "cpu",
                                          "--model", "none", "--no-refine"]
         assert Options(model="/models/ct_mr.safetensors").arguments()[-2:] == ["--model", "/models/ct_mr.safetensors"]
+        assert Options(fixed_modality="us", moving_modality="mr").arguments()[-4:] == [
+            "--fixed-modality", "us", "--moving-modality", "mr"]
+        assert "--fixed-modality" not in Options(moving_modality="ct").arguments()
+
+    def test_the_unverified_key_is_dpcn_meds(self):
+        from DPCNRegistrationLib.logic import UNVERIFIED_KEY
+
+        from dpcn_med.result import SIMILARITY_KEYS
+        assert UNVERIFIED_KEY == SIMILARITY_KEYS["lc2"]
         command = process.command("f.nrrd", "m.nrrd", "out", Options(), python="PythonSlicer")
         assert command[:3] == ["PythonSlicer", str(process.SCRIPT), "register"]
         assert command[-2:] == ["--progress", "json"]
@@ -475,7 +484,7 @@ class TestRegistration:
                                   progress=lambda stage, fraction: stages.append((stage, fraction)))
 
         assert not result.low_confidence and result.confidence > 0.5 and result.overlap == 1.0
-        assert result.success_probability == result.report["success_probability"] > 0.9
+        assert result.success_probability == result.report["success_probability"] > 0.9 and not result.unverified
         assert stages[-1] == ("done", 1.0) and "solving" in {s for s, _ in stages}
         assert moving.GetParentTransformNode().GetID() == result.transform.GetID()
         assert result.transform.GetParentTransformNode().GetID() == base.GetID()
@@ -521,6 +530,27 @@ class TestRegistration:
         np.testing.assert_allclose(from_module[:3, 3], from_cli[:3, 3], atol=0.05)
         report = json.loads((tmp_path / "cli" / "report.json").read_text())
         assert result.confidence == pytest.approx(report["confidence"], rel=1e-3)
+
+
+class TestUltrasound:
+    def test_a_volume_named_ultrasound_is_refined_by_lc2_and_flagged(self):
+        """An ultrasound-like sub-volume (fixed, ``us``) of a phantom against the whole phantom as stored (aligned):
+        the modality reaches dpcn-med, which refines by LC2, flags the result as unverified, and keeps it aligned."""
+        from tests.test_lc2 import _phantom, _ultrasound_of
+
+        whole = _phantom()
+        scene = slicer.vtkMRMLScene()
+        nodes = []
+        for name, image in (("ultrasound", _ultrasound_of(whole, (6, 26))), ("phantom", whole)):
+            node = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", name)
+            image_to_volume(image, node)
+            nodes.append(node)
+        result = register_volumes(*nodes, Options(model="learning-free", bandwidth=16, fixed_modality="us"))
+        assert result.unverified and result.low_confidence and "negative_lc2" in result.report
+        assert result.report["similarity"].startswith("LC2")
+        world = transform_to_world(result.transform)
+        np.testing.assert_allclose(world[:3, :3], np.eye(3), atol=0.02)
+        assert np.linalg.norm(world[:3, 3]) < 1.0, world[:3, 3]
 
 
 def turned_oblique_image(degrees: float) -> sitk.Image:

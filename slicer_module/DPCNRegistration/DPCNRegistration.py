@@ -42,7 +42,8 @@ class DPCNRegistration(ScriptedLoadableModule):
         self.parent.helpText = (
             "Rigid or similarity registration of two volumes (CT, MRI, ultrasound) from any starting pose, by "
             "differentiable phase correlation (DPCN++), optionally refined by mutual information. Pick the fixed and "
-            "moving volumes and press Apply: the moving volume is put under a transform node that aligns it. "
+            "moving volumes and press Apply: the moving volume is put under a transform node that aligns it. Name an "
+            "ultrasound volume's modality 'us' (Options): it is not detected. "
             "See docs/slicer.md in the dpcn_med repository.")
         self.parent.acknowledgementText = (
             "Method: Chen et al., Differentiable Phase Correlation Network for Versatile Pose Registration (DPCN++). "
@@ -60,6 +61,8 @@ class DPCNRegistrationParameterNode:
     mode: Annotated[str, Choice(["rigid", "similarity"])] = "rigid"
     model: Annotated[str, Choice(["default", "learning-free", "file"])] = "default"
     modelFile: pathlib.Path
+    fixedModality: Annotated[str, Choice(["auto", "ct", "mr", "us"])] = "auto"
+    movingModality: Annotated[str, Choice(["auto", "ct", "mr", "us"])] = "auto"
     refine: bool = True
     device: Annotated[str, Choice(["auto", "cpu", "cuda"])] = "auto"
     outputTransform: vtkMRMLLinearTransformNode
@@ -196,7 +199,14 @@ class DPCNRegistrationWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         quality = (f"Success probability {result.success_probability:.0%} (confidence {result.confidence:.3f})"
                    if result.success_probability is not None else f"Confidence {result.confidence:.3f}")
         text = f"{quality}, {result.overlap:.0%} of the fixed volume overlapped ({result.seconds:.1f} s)."
-        if result.low_confidence:
+        if result.low_confidence and result.unverified:
+            text += " Not verified (ultrasound): check the alignment in the views before using it."
+            self.ui.confidenceLabel.setStyleSheet("color: #c0392b")
+            slicer.util.warningDisplay(
+                "The result is not verified: nothing yet tells a right ultrasound registration from a wrong one, and "
+                "from any starting pose but a nearly right one (a tracked probe's) none registers yet. Check the "
+                "alignment in the views before using it.", windowTitle="DPCN Registration")
+        elif result.low_confidence:
             text += " Likely wrong: check the alignment in the views before using it."
             self.ui.confidenceLabel.setStyleSheet("color: #c0392b")
             mirrored = result.report.get("mirrored") or {}
@@ -249,7 +259,8 @@ class DPCNRegistrationLogic(ScriptedLoadableModuleLogic):
             if str(node.modelFile) in ("", ".") or not os.path.isfile(node.modelFile):
                 raise ValueError(f"Model is 'file' but {str(node.modelFile)!r} is not a file; choose a model file")
             model = os.fspath(node.modelFile)
-        return Options(mode=node.mode, model=model, refine=node.refine, device=node.device)
+        return Options(mode=node.mode, model=model, refine=node.refine, device=node.device,
+                       fixed_modality=node.fixedModality, moving_modality=node.movingModality)
 
     def installDependencies(self, askConfirmation: bool = True) -> bool:
         """Install torch (through the PyTorch extension) and dpcn_med into Slicer's Python if they are missing.

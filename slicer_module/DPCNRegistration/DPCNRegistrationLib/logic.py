@@ -32,6 +32,9 @@ from DPCNRegistrationLib.volumes import (
 )
 
 CONFIDENCE_ATTRIBUTE = "DPCNRegistration.Confidence"
+UNVERIFIED_KEY = "negative_lc2"
+"""report.json's key of a result nothing verifies yet (an ultrasound pair refined by LC2): dpcn_med's
+``SIMILARITY_KEYS["lc2"]``, named here because this module reads the report without importing dpcn_med."""
 WORLD_TOLERANCE = 1e-9
 """Largest change of a to-world matrix entry (mm, or unitless for rotation) taken as no change during a run."""
 
@@ -58,6 +61,12 @@ class Result:
     seconds: float = 0.0
     success_probability: float | None = None
     """How likely the result is right, by dpcn-med's quality model (``None`` without refinement)."""
+
+    @property
+    def unverified(self) -> bool:
+        """An ultrasound result refined by LC2: dpcn-med flags every one (``low_confidence``), since nothing yet tells
+        a right one from a wrong one."""
+        return UNVERIFIED_KEY in self.report
 
 
 class Registration:

@@ -37,12 +37,20 @@ class Options:
     device: str = "auto"
     bandwidth: int | None = None
     """``None``: the model's (32 for the learning-free solver), as ``dpcn-med register`` takes it."""
+    fixed_modality: str = "auto"
+    """``auto`` (dpcn-med tells CT from MR by the intensities; it never detects ultrasound), ``ct``, ``mr`` or ``us``:
+    an ultrasound volume must be named so, to be refined by LC2 rather than mutual information."""
+    moving_modality: str = "auto"
+    """As ``fixed_modality``, for the moving volume."""
 
     def arguments(self) -> list[str]:
-        """The ``dpcn-med register`` options for these choices."""
+        """The ``dpcn-med register`` options for these choices (a modality only where it is not ``auto``)."""
         arguments = ["--mode", self.mode, "--device", self.device]
         if self.bandwidth is not None:
             arguments[2:2] = ["--bandwidth", str(int(self.bandwidth))]
+        for flag, modality in (("--fixed-modality", self.fixed_modality), ("--moving-modality", self.moving_modality)):
+            if modality != "auto":
+                arguments += [flag, modality]
         if self.model == "learning-free":
             arguments += ["--model", "none"]
         elif self.model != "default":
