@@ -1,5 +1,5 @@
 """``python -m dpcn_med``: the ``dpcn-med`` command (the Slicer module runs it this way)."""
 
-from dpcn_med.cli import main
+from dpcn_med.cli import run
 
-raise SystemExit(main())
+run()

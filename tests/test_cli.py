@@ -9,6 +9,7 @@ import re
 import shutil
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -142,6 +143,46 @@ class TestRegister:
         done = subprocess.run([sys.executable, "-m", "dpcn_med", "--version"], capture_output=True, text=True,
                               check=False)
         assert done.returncode == 0 and done.stdout.strip() == f"dpcn-med {__version__}"
+
+
+def _exiting(body: str) -> subprocess.CompletedProcess:
+    """A child Python that runs ``body`` (with ``exit_now`` imported), its output captured."""
+    return subprocess.run([sys.executable, "-c", "import atexit, sys, threading, time\n"
+                           "from dpcn_med.cli import exit_now\n" + textwrap.dedent(body)],
+                          capture_output=True, text=True, check=False, timeout=60)
+
+
+class TestExit:
+    def test_exit_handlers_run_and_buffered_output_is_flushed(self):
+        done = _exiting("""
+            atexit.register(lambda: print("handler ran", file=sys.stderr))
+            sys.stdout.write("no line end yet")
+            exit_now(3)
+        """)
+        assert done.returncode == 3 and done.stdout == "no line end yet" and done.stderr == "handler ran\n"
+
+    def test_a_running_thread_is_waited_for(self):
+        done = _exiting("""
+            threading.Thread(target=lambda: (time.sleep(0.3), print("thread done", flush=True))).start()
+            exit_now(0)
+        """)
+        assert done.returncode == 0 and done.stdout == "thread done\n"
+
+    def test_output_that_cannot_be_flushed_is_not_success(self):
+        broken = """
+            class Broken:
+                def write(self, text): return len(text)
+                def flush(self): raise BrokenPipeError(32, "Broken pipe")
+            sys.stdout = Broken()
+            exit_now({code})
+        """
+        assert _exiting(broken.format(code=0)).returncode == 120
+        assert _exiting(broken.format(code=2)).returncode == 2
+
+    def test_the_command_ends_through_it(self):
+        assert "run()" in (Path(__file__).parents[1] / "dpcn_med" / "__main__.py").read_text()
+        pyproject = (Path(__file__).parents[1] / "pyproject.toml").read_text()
+        assert re.search(r'^dpcn-med = "dpcn_med\.cli:run"$', pyproject, re.MULTILINE)
 
 
 def _constant(path: Path) -> None:
