@@ -288,14 +288,21 @@ def _write_files(staging: Path, result, report: dict, settings: RegistrationSett
     io.write_transform(result.fixed_to_moving, staging / "transform.h5")
     io.write_transform(result.moving_to_fixed, staging / "inverse.tfm")
     io.write_transform(result.moving_to_fixed, staging / "inverse.h5")
-    if settings.resampled:
-        io.write_image(result.resampled, staging / "moving_resampled.nii.gz")
-    if settings.overview:
-        from dpcn_med.report import overview_figure
+    from concurrent.futures import ThreadPoolExecutor  # here: `dpcn-med --help` imports this module
 
-        overview_figure(result.fixed_image, result.moving_image, result.fixed_to_moving, staging / "overview.png",
-                        title=f"{title}: {_quality_text(result)}, overlap {result.overlap:.0%}",
-                        centre=result.fixed_grid.centre)  # the fixed foreground centre, already found
+    # The resampled volume is compressed while the overview is drawn: zlib lets go of Python's lock (io.write_image).
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        resampled = pool.submit(io.write_image, result.resampled, staging / "moving_resampled.nii.gz") \
+            if settings.resampled else None
+        if settings.overview:
+            from dpcn_med.report import overview_figure
+
+            overview_figure(result.fixed_image, result.moving_image, result.fixed_to_moving, staging / "overview.png",
+                            title=f"{title}: {_quality_text(result)}, overlap {result.overlap:.0%}",
+                            centre=result.fixed_grid.centre,  # the fixed foreground centre, already found
+                            foregrounds=(result.fixed_foreground, result.moving_foreground))
+        if resampled is not None:
+            resampled.result()  # its error, if any, is this call's
     io.write_json(report, staging / "report.json")
 
 

@@ -385,9 +385,11 @@ def _result(inputs: _Inputs, grids: _Grids, starts: _Starts, choice: Choice, opt
         fixed_grid=grids.fixed_grid, moving_grid=grids.moving_grid,
         modalities=(grids.fixed.modality, grids.moving.modality), metric=choice.metric, refined=choice.refined,
         overlap=overlap, fixed_entropy=choice.fixed_entropy, similarity=choice.similarity,
-        success_probability=None if values is None else shipped_model().probability(values), timings=clock.timings, device=str(options.device),
+        success_probability=None if values is None else shipped_model().probability(values), timings=clock.timings,
+        device=str(options.device),
         model="learning-free" if options.network is None else os.fspath(options.model),
-        fixed_image=inputs.fixed, moving_image=inputs.moving, resampled=resampled)
+        fixed_image=inputs.fixed, moving_image=inputs.moving, resampled=resampled,
+        fixed_foreground=grids.fixed.foreground, moving_foreground=grids.moving.foreground)
 
 
 def _start_confidence(grids: _Grids, starts: _Starts, chosen: int, options: _Options) -> float:

@@ -166,7 +166,8 @@ def overview_planes(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
 
 def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk.Transform,
                     path: str | os.PathLike[str], *, title: str = "", centre: Sequence[float] | None = None,
-                    extent: float | None = None) -> None:
+                    extent: float | None = None,
+                    foregrounds: tuple[sitk.Image | None, sitk.Image | None] | None = None) -> None:
     """Write a PNG that shows at a glance whether a registration worked.
 
     Three rows by three columns (axial, coronal, sagittal, see :func:`orthogonal_planes`): the fixed image in
@@ -182,6 +183,9 @@ def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
         centre: LPS point in mm the planes pass through; default the centre of the fixed image's foreground
             bounding box.
         extent: field of view in mm; default the fixed image's largest physical side.
+        foregrounds: ``(fixed, moving)`` binary masks of each image's foreground, in its physical space on any grid
+            (a registration's, :attr:`~dpcn_med.result.RegistrationResult.fixed_foreground`); default (or ``None`` for
+            one) :func:`~dpcn_med.preprocess.foreground_mask` of the image, found again.
 
     Raises:
         InputError: ``path`` does not end in ``.png``, or an image is not 3-D.
@@ -201,13 +205,15 @@ def overview_figure(fixed: sitk.Image, moving: sitk.Image, fixed_to_moving: sitk
     from dpcn_med.io import atomic_output
 
     fixed_small, moving_small = _subsampled(fixed), _subsampled(moving)
-    fixed_foreground = foreground_mask(fixed_small)
+    fixed_foreground, moving_foreground = (
+        foreground_mask(small) if mask is None else _on_grid(mask, small)
+        for small, mask in zip((fixed_small, moving_small), foregrounds or (None, None), strict=True))
     if centre is None:
         centre = foreground_box(fixed_small, fixed_foreground)[0]
     if extent is None:
         extent = max(size * spacing for size, spacing in zip(fixed.GetSize(), fixed.GetSpacing()))
     fixed_window = _window(fixed_small, fixed_foreground)
-    moving_window = _window(moving_small, foreground_mask(moving_small))
+    moving_window = _window(moving_small, moving_foreground)
     levels = _contour_levels(moving_small)
 
     planes = overview_planes(fixed, moving, fixed_to_moving, centre, extent)
@@ -279,6 +285,11 @@ def _subsampled(image: sitk.Image) -> sitk.Image:
     """``image`` keeping every n-th voxel so that no side exceeds :data:`STATISTICS_SIDE` voxels."""
     factors = [max(1, math.ceil(size / STATISTICS_SIDE)) for size in image.GetSize()]
     return sitk.Shrink(image, factors) if max(factors) > 1 else image
+
+
+def _on_grid(mask: sitk.Image, reference: sitk.Image) -> sitk.Image:
+    """``mask`` on ``reference``'s grid, by nearest neighbour (0 outside it)."""
+    return sitk.Resample(mask, reference, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
 
 
 def _window(image: sitk.Image, foreground: sitk.Image) -> tuple[float, float]:

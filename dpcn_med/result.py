@@ -60,6 +60,8 @@ class RegistrationResult:
         fixed_image: the fixed input as read.
         moving_image: the moving input as read.
         resampled: the moving image on the fixed grid, when asked for.
+        fixed_foreground, moving_foreground: the foregrounds preprocessing found (binary, within a user's mask), on
+            each input's grid or a coarser one over the same space.
     """
 
     fixed_to_moving: sitk.Transform
@@ -86,6 +88,8 @@ class RegistrationResult:
     fixed_image: sitk.Image | None = None
     moving_image: sitk.Image | None = None
     resampled: sitk.Image | None = None
+    fixed_foreground: sitk.Image | None = None
+    moving_foreground: sitk.Image | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready summary: both estimates as 4x4 matrices and parameters, confidence, metric, timings."""

@@ -502,6 +502,24 @@ class TestFailureLeavesNothing:
         assert code == 1 and "disk on fire second line of the message" in error and error.count("\n") == 1
         assert not output.exists() and not list(tmp_path.glob(".dpcn-med-*"))
 
+    def test_the_resampled_volume_failing_in_its_thread_is_the_commands_error(self, pair, tmp_path, monkeypatch,
+                                                                                capsys):
+        """It is written on a thread while the overview is drawn; its error must not be lost there."""
+        from dpcn_med import io
+
+        write_image = io.write_image
+
+        def broken(image, path, **kwargs):
+            if Path(path).name == "moving_resampled.nii.gz":
+                raise OSError("disk full while compressing")
+            return write_image(image, path, **kwargs)
+
+        monkeypatch.setattr(io, "write_image", broken)
+        output = tmp_path / "out"
+        code = main(["register", str(pair[0]), str(pair[1]), "-o", str(output), "--no-refine"])
+        assert code == 1 and "disk full while compressing" in capsys.readouterr().err
+        assert not output.exists() and not list(tmp_path.glob(".dpcn-med-*"))
+
     def test_folders_it_created_are_removed(self, pair, tmp_path, monkeypatch, capsys):
         import dpcn_med.report
 

@@ -150,6 +150,16 @@ class TestResult:
         a, b = sitk.GetArrayFromImage(resampled), sitk.GetArrayFromImage(fixed)
         assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.99
 
+    def test_the_foregrounds_found_cover_each_head(self, result):
+        """They are what the overview draws its windows from (not found again)."""
+        for foreground, image in ((result.fixed_foreground, result.fixed_image),
+                                  (result.moving_foreground, result.moving_image)):
+            values = sitk.GetArrayViewFromImage(foreground)
+            assert set(np.unique(values)) == {0, 1} and 0.2 < values.mean() < 0.9
+            inside = sitk.Resample(foreground, image, sitk.Transform(), sitk.sitkNearestNeighbor)
+            head = sitk.GetArrayViewFromImage(image)[sitk.GetArrayViewFromImage(inside) > 0]
+            assert head.mean() > 2 * sitk.GetArrayViewFromImage(image).mean()  # brighter than the whole, background in
+
     def test_integer_images_are_rounded_not_truncated(self):
         """Truncated towards zero, an int16 CT moved by half a voxel was up to 0.9 HU off, biased by 0.44 HU."""
         values = np.random.default_rng(3).integers(-1000, 1000, size=(12, 12, 12)).astype(np.int16)

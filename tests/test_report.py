@@ -143,6 +143,27 @@ class TestOverviewFigure:
         assert run.stdout.strip() == "[]"
         assert (tmp_path / "o.png").read_bytes()[:4] == b"\x89PNG"
 
+    def test_given_foregrounds_are_used_on_any_grid_in_place_of_finding_them(self, tmp_path, monkeypatch):
+        """A registration's foregrounds (on a coarser grid) draw the same figure as those found again, without the
+        second search for them (a third of the overview's time on a 1 mm head)."""
+        from matplotlib.image import imread
+
+        import dpcn_med.report
+
+        shift = (5.0, 3.0, -4.0)
+        fixed, moving = _oblique_phantom(), _oblique_phantom(shift)
+        arguments = (fixed, moving, sitk.TranslationTransform(3, shift))
+        overview_figure(*arguments, tmp_path / "found.png", title="phantom")
+        coarse = [sitk.Shrink(foreground_mask(image), [2, 2, 2]) for image in (fixed, moving)]
+        monkeypatch.setattr(dpcn_med.report, "foreground_mask", lambda *args, **kwargs: 1 / 0)
+        overview_figure(*arguments, tmp_path / "given.png", title="phantom", foregrounds=tuple(coarse))
+        found, given = imread(tmp_path / "found.png"), imread(tmp_path / "given.png")
+        assert found.shape == given.shape and np.abs(found - given).mean() < 0.02
+        empty = sitk.Image(coarse[1].GetSize(), sitk.sitkUInt8)
+        empty.CopyInformation(coarse[1])
+        overview_figure(*arguments, tmp_path / "empty.png", title="phantom", foregrounds=(coarse[0], empty))
+        assert np.abs(imread(tmp_path / "empty.png") - given).mean() > 0.0  # the moving window is another one
+
     def test_rejects_other_suffix(self, tmp_path):
         image = _oblique_phantom()
         with pytest.raises(InputError, match=r"must end in \.png"):

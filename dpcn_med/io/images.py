@@ -196,8 +196,35 @@ def write_image(image: sitk.Image, path: str | os.PathLike, *, compress: bool = 
     _check_write_suffix(target, IMAGE_WRITE_SUFFIXES, "an image", " (.mhd and .nhdr keep the voxels in a second "
                         "file, which one rename cannot move)")
     with atomic_output(target) as temporary:
-        sitk.WriteImage(image, str(temporary), useCompression=compress)
+        if compress and target.name.lower().endswith(".nii.gz"):
+            _write_nifti_gz(image, temporary)
+        else:
+            sitk.WriteImage(image, str(temporary), useCompression=compress)
         _check_written(target, lambda: _check_nifti_length(temporary))
+
+
+NIFTI_GZIP_LEVEL = 1
+"""zlib level of the .nii.gz files :func:`write_image` writes: as fast as ITK's own gzip, files about 2% larger."""
+
+
+def _write_nifti_gz(image: sitk.Image, path: Path) -> None:
+    """``image`` as a gzipped NIfTI at ``path``: ITK writes the plain .nii beside it, Python's zlib compresses it.
+
+    Why not ITK's gzip: it holds Python's lock while it compresses (0.4-0.5 s for a 1 mm head), where zlib releases
+    it, so a thread can write the volume while the command draws its overview (``dpcn_med.outputs``).
+    """
+    import gzip
+    import shutil
+
+    plain = path.with_name(path.name[:-len(".gz")])  # a temporary name already (atomic_output's), beside it
+    try:
+        sitk.WriteImage(image, str(plain), useCompression=False)
+        # No name in the gzip header (it would be the temporary one), and no time: the same image, the same bytes.
+        with open(plain, "rb") as source, open(path, "wb") as raw, gzip.GzipFile(
+                filename="", mode="wb", fileobj=raw, compresslevel=NIFTI_GZIP_LEVEL, mtime=0) as target:
+            shutil.copyfileobj(source, target, 1 << 22)
+    finally:
+        plain.unlink(missing_ok=True)
 
 
 def _read_volume(name: str, max_bytes: int | None) -> sitk.Image:

@@ -209,6 +209,19 @@ class TestWriteImage:
         np.testing.assert_array_equal(sitk.GetArrayFromImage(image), sitk.GetArrayFromImage(volume))
         assert os.listdir(tmp_path) == [path.name]
 
+    def test_a_gzipped_nifti_is_plain_gzip_without_a_name_and_the_same_every_time(self, volume, tmp_path):
+        """Compressed by Python's zlib, which lets a thread write it while another works (io.images)."""
+        import gzip
+
+        for name in ("a.nii.gz", "b.nii.gz"):
+            io.write_image(volume, tmp_path / name)
+        first = (tmp_path / "a.nii.gz").read_bytes()
+        assert first == (tmp_path / "b.nii.gz").read_bytes()
+        assert first[:2] == b"\x1f\x8b" and not first[3] & 0x08  # gzip, and no FNAME field (the temporary name)
+        plain = tmp_path / "plain.nii"
+        io.write_image(volume, plain)
+        assert gzip.decompress(first) == plain.read_bytes()
+
     def test_compression_shrinks_the_file(self, tmp_path):
         smooth = sitk.GetImageFromArray(np.tile(np.arange(20, dtype=np.float32), (28, 24, 1)))
         io.write_image(smooth, tmp_path / "raw.mha", compress=False)
