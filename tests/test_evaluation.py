@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
 
 from dpcn_med.errors import InputError
-from dpcn_med.evaluation import foreground_corners, moved_copy, random_similarity, target_registration_error
+from dpcn_med.evaluation import (
+    foreground_corners,
+    moved_copy,
+    random_similarity,
+    rotation_error,
+    target_registration_error,
+)
 from dpcn_med.geometry import homogeneous_matrix
 
 
@@ -130,3 +138,35 @@ class TestTargetRegistrationError:
         identity = sitk.Transform(3, sitk.sitkIdentity)
         with pytest.raises(InputError, match=message):
             target_registration_error(identity, identity, points)
+
+
+class TestRotationError:
+    @staticmethod
+    def turned(degrees: float, axis=(1.0, 2.0, -0.5), scale: float = 1.0, shift=(0.0, 0.0, 0.0),
+               centre=(0.0, 0.0, 0.0)) -> sitk.Similarity3DTransform:
+        transform = sitk.Similarity3DTransform()
+        transform.SetCenter(centre)
+        transform.SetRotation(axis, math.radians(degrees))
+        transform.SetScale(scale)
+        transform.SetTranslation(shift)
+        return transform
+
+    def test_the_angle_between_the_rotations_whatever_the_scale_shift_and_centre(self):
+        first = self.turned(30.0, scale=1.3, shift=(5.0, -2.0, 9.0), centre=(10.0, 0.0, 4.0))
+        assert rotation_error(first, sitk.Transform(3, sitk.sitkIdentity)) == pytest.approx(30.0, abs=1e-9)
+        assert rotation_error(first, self.turned(30.0, scale=0.8)) == pytest.approx(0.0, abs=1e-6)
+        assert rotation_error(first, self.turned(-15.0)) == pytest.approx(45.0, abs=1e-9)
+        assert rotation_error(self.turned(179.0), self.turned(-179.0)) == pytest.approx(2.0, abs=1e-6)
+        assert rotation_error(self.turned(180.0), sitk.Transform(3, sitk.sitkIdentity)) == pytest.approx(180.0)
+
+    def test_a_small_shear_does_not_count(self):
+        affine = sitk.AffineTransform(3)
+        matrix = np.asarray(self.turned(20.0).GetMatrix()).reshape(3, 3) @ np.array([[1, 0.01, 0], [0, 1, 0],
+                                                                                      [0, 0, 1.02]])
+        affine.SetMatrix(matrix.ravel().tolist())
+        assert rotation_error(affine, self.turned(20.0)) < 0.5
+
+    def test_a_displacement_field_is_refused(self):
+        field = sitk.DisplacementFieldTransform(sitk.Image([4, 4, 4], sitk.sitkVectorFloat64, 3))
+        with pytest.raises(ValueError):
+            rotation_error(field, sitk.Transform(3, sitk.sitkIdentity))

@@ -20,8 +20,11 @@ it."""
 SETTINGS = "settings.json"
 """Beside ``results.csv``: the settings its poses follow from (:func:`pose_settings`), which ``--combine`` compares."""
 RESULT_FIELDS = {"case": str, "bin": str, "trial": int, "method": str, "tre_mm": float, "seconds": float,
-                 "peak_mib": float}
+                 "peak_mib": float, "rotation_error_deg": float, "centre_error_mm": float, "canonical_voxel_mm": float}
 """Columns of ``results.csv`` and their types (:func:`~dpcn_med.benchmark.run_benchmark`'s rows)."""
+GLOBAL_FIELDS = ("rotation_error_deg", "centre_error_mm", "canonical_voxel_mm")
+"""The columns of the global estimate's criterion (:data:`dpcn_med.evaluation.SUCCESS_DEGREES`), added on 2026-12-07:
+a ``results.csv`` written before lacks them, and reads back with them NaN."""
 
 
 class Journal:
@@ -62,7 +65,9 @@ class Journal:
         for line, text in enumerate(complete[1:], start=2):
             try:
                 record = json.loads(text)
-                row = {field: kind(record[field]) for field, kind in RESULT_FIELDS.items()}
+                # A journal begun before the global fields were (same version) lacks them: NaN, as combine reads them.
+                row = {field: kind(record[field] if field in record or field not in GLOBAL_FIELDS else math.nan)
+                       for field, kind in RESULT_FIELDS.items()}
             except (json.JSONDecodeError, KeyError, TypeError, ValueError) as error:
                 raise InputError(f"{self.path}: line {line}: not a registration ({type(error).__name__}: {error})"
                                  ) from None
@@ -102,10 +107,14 @@ def combine_results(folders: list[str | os.PathLike]) -> list[dict]:
     rows, seen = [], {}
     for folder in folders:
         path = Path(folder) / "results.csv"
-        found = io.read_csv(path, RESULT_FIELDS)
-        if found and set(found[0][1]) != set(RESULT_FIELDS):
-            raise InputError(f"{path}: not a benchmark's results (columns {', '.join(RESULT_FIELDS)}, no others)")
+        required = {name: kind for name, kind in RESULT_FIELDS.items() if name not in GLOBAL_FIELDS}
+        found = io.read_csv(path, required, allowed=GLOBAL_FIELDS)
+        if found and 0 < len(set(GLOBAL_FIELDS) & set(found[0][1])) < len(GLOBAL_FIELDS):
+            raise InputError(f"{path}: has some of the columns {', '.join(GLOBAL_FIELDS)} but not all; a benchmark "
+                             "writes all three, or (before 2026-12-07) none")
         for line, row in found:
+            for name in GLOBAL_FIELDS:
+                row[name] = _optional_number(row.get(name), path, line, name)
             key = _checked_row(row, path, line)
             if key in seen:
                 raise InputError(f"{path}: line {line}: {', '.join(map(str, key))} is also in {seen[key]}")
@@ -152,5 +161,21 @@ def _checked_row(row: dict, path: Path, line: int) -> tuple[str, str, int, str]:
     for field in ("trial", "tre_mm", "seconds"):  # peak_mib may be NaN (no /proc) or slightly negative
         if not (math.isfinite(row[field]) and row[field] >= 0):
             raise InputError(f"{path}: line {line}: {field} {row[field]}; expected a finite number >= 0")
+    for field in GLOBAL_FIELDS:  # NaN: written before they were
+        if row[field] < 0 or math.isinf(row[field]):
+            raise InputError(f"{path}: line {line}: {field} {row[field]}; expected a finite number >= 0, or none")
     return row["case"], row["bin"], row["trial"], row["method"]
 
+
+def _optional_number(value: str | None, path: Path, line: int, name: str) -> float:
+    """A cell of one of :data:`GLOBAL_FIELDS`: NaN where it is absent or empty.
+
+    Raises:
+        InputError: not a number, naming the file, line and column.
+    """
+    if value is None or not value.strip():
+        return math.nan
+    try:
+        return float(value)
+    except ValueError:
+        raise InputError(f"{path}: line {line}: {name} {value!r} is not a number") from None

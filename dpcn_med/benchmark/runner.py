@@ -18,8 +18,9 @@ from dpcn_med.benchmark.memory import reset_peak_rss, status_mib
 from dpcn_med.benchmark.methods import DPCN_METHODS, METHODS, available_methods
 from dpcn_med.benchmark.results import Journal
 from dpcn_med.errors import InputError
-from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
-from dpcn_med.preprocess import foreground_box
+from dpcn_med.evaluation import foreground_corners, moved_copy, rotation_error, target_registration_error
+from dpcn_med.preprocess import foreground_box, pair_grids, prepare
+from dpcn_med.solver.config import DEFAULT_BANDWIDTH
 
 
 def run_benchmark(config: BenchmarkConfig, progress: Callable[[str], None] | None = None,
@@ -119,18 +120,32 @@ def _run_case(run: _Run, case: str) -> None:
     config = run.config
     fixed, moving_whole = CASES[case][2]()
     corners, centre = foreground_corners(fixed), foreground_box(fixed)[0]
+    canonical = canonical_voxel(fixed, moving_whole)
     rng = np.random.default_rng([config.seed, list(CASES).index(case)])
     for low, high in config.bins:
         for trial in range(config.trials):
             truth = rotation_in_bin(rng, low, high, centre, config.max_shift_mm)
             if config.run_bins and f"{low}-{high}" not in config.run_bins:
                 continue
-            _run_pose(run, case, (low, high), trial, fixed, moving_whole, truth, corners)
+            _run_pose(run, case, (low, high), trial, fixed, moving_whole, truth, corners, canonical)
+
+
+def canonical_voxel(fixed: sitk.Image, moving: sitk.Image) -> tuple[np.ndarray, float]:
+    """The fixed canonical grid's centre (LPS mm) and the pair's canonical voxel (mm) at the default bandwidth, as
+    :func:`dpcn_med.register` makes them for the pair as stored.
+
+    Measured on the moving volume as stored, not as turned: a turned volume's foreground box, and with it the voxel,
+    differs a little from pose to pose; one voxel per case keeps the criterion the same for every pose
+    (:data:`~dpcn_med.evaluation.SUCCESS_VOXELS` of them).
+    """
+    fixed_grid, _ = pair_grids(prepare(fixed), prepare(moving), 2 * DEFAULT_BANDWIDTH)
+    return np.asarray(fixed_grid.centre), fixed_grid.spacing
 
 
 def _run_pose(run: _Run, case: str, bin_: tuple[int, int], trial: int, fixed: sitk.Image, moving_whole: sitk.Image,
-              truth: sitk.Transform, corners: np.ndarray) -> None:
-    """Every method on one pose (those the journal holds taken from it), each row journalled as it comes."""
+              truth: sitk.Transform, corners: np.ndarray, canonical: tuple[np.ndarray, float]) -> None:
+    """Every method on one pose (those the journal holds taken from it), each row journalled as it comes; the
+    criterion of a global estimate is measured at ``canonical`` (:func:`canonical_voxel`)."""
     low, high = bin_
     moving = None
     for method in run.methods:
@@ -147,7 +162,10 @@ def _run_pose(run: _Run, case: str, bin_: tuple[int, int], trial: int, fixed: si
         if shows:
             run.showcase.update(case=case, bin=f"{low}-{high}", fixed=fixed, moving=moving, estimate=estimate)
         run.rows.append({"case": case, "bin": f"{low}-{high}", "trial": trial, "method": method,
-                         "tre_mm": error, "seconds": seconds, "peak_mib": peak})
+                         "tre_mm": error, "seconds": seconds, "peak_mib": peak,
+                         "rotation_error_deg": rotation_error(estimate, truth),
+                         "centre_error_mm": target_registration_error(estimate, truth, canonical[0][None]),
+                         "canonical_voxel_mm": canonical[1]})
         if run.journal is not None:
             run.journal.append(run.rows[-1])
         if run.progress is not None:

@@ -26,6 +26,7 @@ from torch import Tensor
 
 from dpcn_med import io
 from dpcn_med.errors import InputError
+from dpcn_med.evaluation import SUCCESS_DEGREES, SUCCESS_VOXELS
 from dpcn_med.geometry import geodesic_distance
 from dpcn_med.models import DPCN, DPCNOutput, pose_loss, save_model
 from dpcn_med.solver import PoseTarget, SolveResult
@@ -35,9 +36,6 @@ from dpcn_med.train.config import TrainConfig
 from dpcn_med.train.data import sample_pairs, validation_set, volume_bank
 from dpcn_med.train.folders import FolderPairs, collate_pairs, derived_seed
 from dpcn_med.train.pretrain import dense_loss, pretrained_extractors, set_pretrained_gains
-
-SUCCESS_DEGREES, SUCCESS_VOXELS = 5.0, 2.0
-"""A registration succeeds within 5 degrees and 2 voxels (the learning issue's criterion)."""
 
 LOSS_TERMS = ("total", "rotation_kl", "rotation_l1", "scale_kl", "scale_l1", "translation_kl", "translation_l1",
               "candidate_ranking", "dense_ncc", "pose_contrast")

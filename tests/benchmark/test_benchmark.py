@@ -12,7 +12,14 @@ import pytest
 import SimpleITK as sitk
 
 from dpcn_med import benchmark
-from dpcn_med.benchmark import BenchmarkConfig, markdown, rotation_in_bin, run_benchmark, write_outputs
+from dpcn_med.benchmark import (
+    BenchmarkConfig,
+    global_success,
+    markdown,
+    rotation_in_bin,
+    run_benchmark,
+    write_outputs,
+)
 from dpcn_med.cli import main
 from dpcn_med.errors import InputError
 from dpcn_med.evaluation import foreground_corners, moved_copy, target_registration_error
@@ -65,6 +72,12 @@ class TestRunBenchmark:
         with open(tmp_path / "out" / "results.csv", newline="") as handle:
             assert len(list(csv.DictReader(handle))) == 4
         assert "| dpcn_med learning-free, global estimate only | 100% | 100% |" in text
+        # the solver's own criterion, beside the TRE: the global estimate meets it at any angle, the local tool not
+        assert [global_success(r) for r in rows] == [True, True, True, False]
+        assert all(r["canonical_voxel_mm"] > 2.0 and 0 <= r["rotation_error_deg"] <= 180 for r in rows)
+        assert "Global estimate within 5 degrees and 2 canonical voxels" in text
+        assert text.count("| dpcn_med learning-free, global estimate only | 100% | 100% |") == 2
+        assert "| SimpleITK MI from GEOMETRY initialiser | 100% | 0% |" in text
 
     def test_the_showcase_is_rendered_before_and_after(self, tmp_path):
         pytest.importorskip("pyvista", reason="pyvista (the mesh extra) is not installed")
@@ -139,7 +152,7 @@ class TestRunBenchmark:
         lines = (tmp_path / "both" / "results.csv").read_text().splitlines()
         (tmp_path / "more" / "results.csv").write_text("\n".join([lines[0] + ",note", lines[1] + ",x"]) + "\n")
         for folder, message in ((tmp_path / "bad", "results.csv: no column trial, method, tre_mm, seconds, peak_mib"),
-                                (tmp_path / "more", "results.csv: not a benchmark's results"),
+                                (tmp_path / "more", "results.csv: unknown column 'note'"),
                                 (tmp_path / "none", "results.csv: not found")):
             assert main(["benchmark", "--combine", str(folder), "-o", str(tmp_path / "out")]) == 2
             assert message in capsys.readouterr().err
@@ -196,9 +209,10 @@ class TestRunBenchmark:
         assert said[0] == "left out: ants-rigid needs antspyx (pip install 'dpcn_med[benchmark]')"
 
 
-def _row(bin_: str, trial: int, method: str, tre: float, seconds: float = 1.0, peak: float = 10.0) -> dict:
+def _row(bin_: str, trial: int, method: str, tre: float, seconds: float = 1.0, peak: float = 10.0,
+         rotation: float = 1.0, centre: float = 1.0) -> dict:
     return {"case": "mni", "bin": bin_, "trial": trial, "method": method, "tre_mm": tre, "seconds": seconds,
-            "peak_mib": peak}
+            "peak_mib": peak, "rotation_error_deg": rotation, "centre_error_mm": centre, "canonical_voxel_mm": 4.0}
 
 
 def _results(folder, rows: list[dict], settings: dict | None = None):
@@ -219,6 +233,33 @@ class TestSummary:
         text = markdown(rows, BenchmarkConfig(bins=((0, 30), (30, 60))))
         assert "| median TRE (mm) | median s | median peak MiB |" in text
         assert "| dpcn_med learning-free + refinement (defaults) | 100% | 0% | 15.00 | 15.0 | 150 |" in text
+
+    def test_the_global_criterion_is_5_degrees_and_2_canonical_voxels(self):
+        assert global_success(_row("0-30", 0, "dpcn", 9.0, rotation=4.9, centre=7.9))
+        assert not global_success(_row("0-30", 0, "dpcn", 0.1, rotation=5.1, centre=0.1))
+        assert not global_success(_row("0-30", 0, "dpcn", 0.1, rotation=0.1, centre=8.1))  # 2 voxels of 4 mm
+        assert global_success({**_row("0-30", 0, "dpcn", 1.0), "rotation_error_deg": math.nan}) is None
+        rows = [_row("0-30", 0, "dpcn-global", 9.0, rotation=2.0), _row("0-30", 1, "dpcn-global", 9.0, rotation=60.0),
+                _row("30-60", 0, "dpcn-global", 9.0)]
+        text = markdown(rows, BenchmarkConfig(bins=((0, 30), (30, 60))))
+        assert "canonical voxels (8.0 mm at the fixed grid's centre" in text
+        assert text.endswith("| dpcn_med learning-free, global estimate only | 50% | 100% |\n")
+
+    def test_results_written_before_the_global_columns_combine_without_its_table(self, tmp_path, capsys):
+        old = ("case,bin,trial,method,tre_mm,seconds,peak_mib\n"
+               "mni,0-30,0,dpcn,0.5,2.0,10\nmni,0-30,1,dpcn,9.0,2.0,10\n")
+        (tmp_path / "old").mkdir()
+        (tmp_path / "old" / "results.csv").write_text(old)
+        rows = benchmark.combine_results([tmp_path / "old"])
+        assert all(math.isnan(r[name]) for r in rows for name in benchmark.GLOBAL_FIELDS)
+        assert main(["benchmark", "--combine", str(tmp_path / "old"), "-o", str(tmp_path / "out")]) == 0
+        summary = (tmp_path / "out" / "summary.md").read_text()
+        assert "| dpcn_med learning-free + refinement (defaults) | 50% |" in summary and "Global estimate" not in summary
+        (tmp_path / "some").mkdir()
+        (tmp_path / "some" / "results.csv").write_text(old.replace("peak_mib", "peak_mib,rotation_error_deg")
+                                                       .replace(",10\n", ",10,3.0\n"))
+        assert main(["benchmark", "--combine", str(tmp_path / "some"), "-o", str(tmp_path / "out2")]) == 2
+        assert "has some of the columns rotation_error_deg" in capsys.readouterr().err
 
     def test_sitk_exhaustive_samples_with_a_fixed_seed(self, monkeypatch):
         """SimpleITK takes seed 0 for the wall clock: a new sample, and result, on every run."""
@@ -323,10 +364,19 @@ class TestJournal:
         assert [r["bin"] for r in rows] == ["0-30", "150-180"] and rows[0] == first[("mni", "0-30", 0, "dpcn-global")]
         assert not journal.path.exists()
 
+    def test_a_registration_journalled_before_the_global_fields_reads_them_as_nan(self, tmp_path):
+        journal = benchmark.Journal(tmp_path / benchmark.JOURNAL, BenchmarkConfig())
+        journal.append(_row("0-30", 0, "dpcn", 0.5))
+        older = {k: v for k, v in _row("0-30", 1, "dpcn", 0.7).items() if k not in benchmark.GLOBAL_FIELDS}
+        with open(journal.path, "a") as stream:
+            stream.write(json.dumps(older) + "\n")
+        rows = journal.rows()
+        assert rows[("mni", "0-30", 0, "dpcn")]["rotation_error_deg"] == 1.0
+        assert all(math.isnan(rows[("mni", "0-30", 1, "dpcn")][name]) for name in benchmark.GLOBAL_FIELDS)
+
     def test_other_settings_are_refused_not_mixed_in(self, tmp_path, capsys):
         journal = benchmark.Journal(tmp_path / "b" / benchmark.JOURNAL, BenchmarkConfig(trials=2))
-        journal.append({"case": "mni", "bin": "0-30", "trial": 1, "method": "dpcn-global", "tre_mm": 0.5,
-                        "seconds": 1.0, "peak_mib": 10.0})
+        journal.append(_row("0-30", 1, "dpcn-global", 0.5))
         assert main(["benchmark", "--cases", "mni", "--methods", "dpcn-global", "--trials", "1", "-o",
                      str(tmp_path / "b")]) == 2
         err = capsys.readouterr().err
@@ -369,8 +419,7 @@ class TestJournal:
 
     def test_a_line_cut_by_the_interruption_is_dropped(self, tmp_path):
         journal = benchmark.Journal(tmp_path / benchmark.JOURNAL, BenchmarkConfig())
-        row = {"case": "mni", "bin": "0-30", "trial": 0, "method": "sitk-geometry", "tre_mm": 0.5, "seconds": 1.0,
-               "peak_mib": float("nan")}
+        row = _row("0-30", 0, "sitk-geometry", 0.5, peak=float("nan"))
         journal.append(row)
         journal.append({**row, "trial": 1})
         text = journal.path.read_bytes()
@@ -391,8 +440,7 @@ class TestJournal:
         config = BenchmarkConfig(cases=("mni",), methods=("dpcn", "sitk-geometry"), bins=((150, 180),), trials=1)
         journal = benchmark.Journal(tmp_path / benchmark.JOURNAL, config)
         for method, tre in (("dpcn", 99.0), ("sitk-geometry", 42.0)):
-            journal.append({"case": "mni", "bin": "150-180", "trial": 0, "method": method, "tre_mm": tre,
-                            "seconds": 1.0, "peak_mib": 1.0})
+            journal.append(_row("150-180", 0, method, tre, peak=1.0))
         label, package, _ = benchmark.METHODS["sitk-geometry"]
         monkeypatch.setitem(benchmark.METHODS, "sitk-geometry", (label, package, lambda *a: pytest.fail("ran")))
         showcase: dict = {}
