@@ -55,9 +55,12 @@ def summarise(rows: list[dict]) -> list[dict]:
 
 def markdown(rows: list[dict], config: BenchmarkConfig) -> str:
     """Tables per case: success by rotation bin for every method, then the medians over all its registrations of
-    the case (not of the bins' medians, which weigh a bin of one pose like one of ten) of TRE, seconds and peak MiB."""
+    the case (not of the bins' medians, which weigh a bin of one pose like one of ten) of TRE, seconds and peak MiB,
+    then, where the rows measured it, the share within the global criterion by bin (:func:`global_success`)."""
     bins = [f"{low}-{high}" for low, high in config.bins]
-    success = {(r["case"], r["method"], r["bin"]): r["success"] for r in summarise(rows)}
+    summary = {(r["case"], r["method"], r["bin"]): r for r in summarise(rows)}
+    success = {key: cell["success"] for key, cell in summary.items()}
+    shares = {key: cell["global_success"] for key, cell in summary.items()}
     lines = []
     for case in dict.fromkeys(r["case"] for r in rows):
         lines += [f"### {CASES[case][0]}", "",
@@ -74,13 +77,14 @@ def markdown(rows: list[dict], config: BenchmarkConfig) -> str:
                          + f" | {statistics.median(r['tre_mm'] for r in mine):.2f}"
                          + f" | {statistics.median(r['seconds'] for r in mine):.1f}"
                          + f" | {statistics.median(r['peak_mib'] for r in mine):.0f} |")
-        lines += ["", *_global_table(rows, case, bins)]
+        lines += ["", *_global_table(rows, case, bins, shares)]
     return "\n".join(lines)
 
 
-def _global_table(rows: list[dict], case: str, bins: list[str]) -> list[str]:
-    """The case's shares of :func:`global_success` by method and bin (none where no row measured it)."""
-    summary = {(r["method"], r["bin"]): r["global_success"] for r in summarise(rows) if r["case"] == case}
+def _global_table(rows: list[dict], case: str, bins: list[str], shares: dict[tuple[str, str, str], float]
+                  ) -> list[str]:
+    """The case's ``shares`` of :func:`global_success` (:func:`summarise`'s, by case, method and bin) by method and
+    bin; none where no row of the case measured it."""
     measured = [r for r in rows if r["case"] == case and global_success(r) is not None]
     if not measured:
         return []
@@ -89,7 +93,7 @@ def _global_table(rows: list[dict], case: str, bins: list[str]) -> list[str]:
              "own criterion, which a global estimate on its coarse grid can meet where it cannot meet 2 mm):")
     lines = [title, "", "| method | " + " | ".join(f"{b} deg" for b in bins) + " |", "|---|" + "---|" * len(bins)]
     for method in dict.fromkeys(r["method"] for r in measured):
-        cells = [summary.get((method, b), math.nan) for b in bins]
+        cells = [shares.get((case, method, b), math.nan) for b in bins]
         lines.append(f"| {METHODS[method][0]} | "
                      + " | ".join("-" if math.isnan(c) else f"{100 * c:.0f}%" for c in cells) + " |")
     return [*lines, ""]
