@@ -122,6 +122,9 @@ def rotation_error(estimate: sitk.Transform, truth: sitk.Transform) -> float:
     for transform in (estimate, truth):
         left, _, right = np.linalg.svd(homogeneous_matrix(transform)[:3, :3])
         rotations.append(left @ np.diag([1.0, 1.0, np.sign(np.linalg.det(left @ right))]) @ right)
-    cosine = (np.trace(rotations[0] @ rotations[1].T) - 1.0) / 2.0
-    return math.degrees(math.acos(min(1.0, max(-1.0, cosine))))
-
+    relative = rotations[0] @ rotations[1].T
+    # atan2 of the angle's sine (from the skew part) and cosine (from the trace), not acos of the cosine alone:
+    # acos loses half the digits near 0 degrees (1e-16 in the trace is 1e-6 degrees out).
+    skew = relative - relative.T
+    sine = math.hypot(skew[2, 1], skew[0, 2], skew[1, 0]) / 2.0
+    return math.degrees(math.atan2(sine, (np.trace(relative) - 1.0) / 2.0))

@@ -78,12 +78,13 @@ class TestEntropyImage:
 class TestEntropyCandidates:
     @pytest.mark.parametrize("seed", [0, 1, 2])
     def test_they_hold_the_truth_under_a_non_monotonic_map(self, seed):
-        """The same head with its tissue levels reordered on the moving side: the raw volumes' candidates all miss
-        the truth by more than 4 degrees (measured 4.8-7.6), the entropy images' include it within 3 (1.4-2.0)."""
+        """The same head with its tissue levels reordered on the moving side: the entropy images' candidates hold the
+        truth within 3 degrees, and at most 0.6 times as far as the raw volumes' nearest (measured: 1.4-2.0 degrees
+        against 4.8-7.6 on one machine, 1.4-2.0 against 3.2-4.8 on an AVX-512 one; ratios 0.35-0.44)."""
         labels = quantised_head(64)
         pose = random_poses(1, 64, seed=seed)[0]
         moving = pose.moving_from(REORDERED[labels.long()])
         nearest = {bins: solve(labels / (LEVELS - 1), moving, bandwidth=32, entropy_bins=bins).ranking.errors(
             pose.rotation[None].to(torch.float32)).amin().item() for bins in (0, 8)}
         assert nearest[8] < 3.0
-        assert nearest[0] > 4.0
+        assert nearest[8] < 0.6 * nearest[0]

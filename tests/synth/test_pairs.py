@@ -79,7 +79,10 @@ class TestContract:
             fixed, moving, target = _identity_pairs(head, seed, PairConfig(mode=mode, crop_probability=0.0))
             result = solve(fixed, moving, mode, bandwidth=16, refine=True)
             angle = rotation_angle(result.rotation.transpose(1, 2) @ target.rotation)
-            assert math.degrees(angle.item()) < 5.0
+            # Within two thirds of the 11.25-degree Euler grid step of bandwidth 16: a wrong convention would be
+            # tens of degrees off. Not 5: two candidates 3.4 and 6.4 degrees off (one per source) ranked as a near
+            # tie, and an AVX-512 machine took the farther one (6.2 degrees after the refinement).
+            assert math.degrees(angle.item()) < 7.5
             assert (result.translation - target.translation).norm().item() < 2.0
             assert result.scale.item() == pytest.approx(target.scale.item(), rel=0.05)
 
