@@ -6,7 +6,8 @@ each side a random non-monotonic intensity map with bias field, blur, thick slic
 within 5 degrees and translation within 2 voxels (the learning issue's criterion). Prints a table and writes it under
 docs/. ``--volumes training`` makes the pairs from the config's training volumes instead, with the same unseen
 contrasts and poses: a model that wins there and loses on held-out volumes has learned its training anatomy.
-``--per-volume`` draws the pairs from each volume alone, a row per model and volume.
+``--per-volume`` draws the pairs from each volume alone, a row per model and volume. ``--variants`` adds rows of the
+learning-free solver with settings changed (``SolverConfig`` fields), on the same pairs.
 
     python benchmarks/learned_accuracy.py --config training/configs/ct_mr.yaml --models none runs/ct_mr/model
 """
@@ -14,6 +15,7 @@ contrasts and poses: a model that wins there and loses on held-out volumes has l
 from __future__ import annotations
 
 import argparse
+import ast
 import statistics
 import sys
 from pathlib import Path
@@ -48,6 +50,17 @@ def errors(predict, pairs) -> tuple[list[float], list[float], list[float]]:
     return rotations, translations, best
 
 
+def _variant(text: str) -> dict:
+    """``FIELD=VALUE`` as a solver option, the value a Python literal (``0``, ``(0.3,)``)."""
+    field, equals, value = text.partition("=")
+    if not equals or not field.strip():
+        raise argparse.ArgumentTypeError(f"{text!r}: expected FIELD=VALUE")
+    try:
+        return {field.strip(): ast.literal_eval(value.strip())}
+    except (ValueError, SyntaxError):
+        raise argparse.ArgumentTypeError(f"{text!r}: {value!r} is not a Python literal") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, required=True, help="training config: its held-out volumes and pairs")
@@ -61,6 +74,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--per-volume", action="store_true",
                         help="--pairs pairs from each volume alone, one row per model and volume (which anatomy a "
                         "model fails on)")
+    parser.add_argument("--variants", nargs="+", default=[], type=_variant, metavar="FIELD=VALUE",
+                        help="more learning-free rows, each with one SolverConfig field changed (a Python literal), "
+                        "e.g. entropy_ranking_weight=0")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "learned_accuracy.md")
     args = parser.parse_args(argv)
@@ -81,8 +97,13 @@ def main(argv: list[str] | None = None) -> int:
              "median translation error (voxels) | 90th percentile rotation error (deg) | "
              "a candidate within 5 deg |",
              "|---|" + ("---|" if args.per_volume else "") + "---|---|---|---|---|---|"]
-    for name in args.models:
-        if name.lower() in LEARNING_FREE:
+    for name in [*args.models, *args.variants]:
+        if isinstance(name, dict):
+            label = "learning-free solver, " + ", ".join(f"`{field}={value!r}`" for field, value in name.items())
+
+            def predict(fixed, moving, options=name):
+                return solve(fixed, moving, mode, bandwidth=bandwidth, **options)
+        elif name.lower() in LEARNING_FREE:
             label = "learning-free solver"
 
             def predict(fixed, moving):

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 
+from dpcn_med.errors import InputError
 from dpcn_med.evaluation import random_similarity
 from dpcn_med.preprocess import foreground_box
 from tests.test_registration import mni_2mm
@@ -33,6 +34,10 @@ class TestCounts:
     @pytest.mark.parametrize("name, argv, message", [
         ("solver_accuracy", ["--poses", "0"], "argument --poses: 0 is too few; give at least 1"),
         ("learned_accuracy", ["--config", "x.yaml", "--pairs", "1"], "argument --pairs: 1 is too few; give at least 2"),
+        ("learned_accuracy", ["--config", "x.yaml", "--variants", "entropy"],
+         "argument --variants: 'entropy': expected FIELD=VALUE"),
+        ("learned_accuracy", ["--config", "x.yaml", "--variants", "taper=x"],
+         "argument --variants: 'taper=x': 'x' is not a Python literal"),
         ("learned_speed", ["--steps", "0"], "argument --steps: 0 is too few"),
         ("learned_speed", ["--batches", "4", "0"], "argument --batches: 0 is too few"),
         ("register_roundtrip", ["--trials", "0"], "argument --trials: 0 is too few"),
@@ -354,6 +359,25 @@ class TestLearnedAccuracy:
             assert cells[-1].endswith("%") and 0.0 <= float(cells[-1][:-1]) <= 100.0
         if "--per-volume" in extra:
             assert [line.split("|")[2].strip() for line in table] == ["mni", "mni-head"]
+
+    def test_a_variant_is_a_learning_free_row_with_its_setting(self, tmp_path):
+        (tmp_path / "tiny.yaml").write_text(
+            "model: {bandwidth: 8, channels: [4, 8], modalities: [ct, mr]}\n"
+            "data: {volumes: [mni], validation_volumes: [mni], pair: {max_shift_fraction: 0.1}}\n")
+        output = tmp_path / "table.md"
+        argv = ["--config", str(tmp_path / "tiny.yaml"), "--models", "none", "--pairs", "2", "--device", "cpu",
+                "--output", str(output), "--variants", "entropy_ranking_weight=0", "candidate_size=8"]
+        assert script("learned_accuracy").main(argv) == 0
+        labels = [line.split("|")[1].strip() for line in output.read_text().splitlines()
+                  if line.startswith("| learning-free solver")]
+        assert labels == ["learning-free solver", "learning-free solver, `entropy_ranking_weight=0`",
+                          "learning-free solver, `candidate_size=8`"]
+        # A setting the solver refuses stops the run with the solver's message, and no table is written.
+        refused = tmp_path / "refused.md"
+        with pytest.raises(InputError, match="entropy_ranking_weight is -1"):
+            script("learned_accuracy").main([*argv[:-5], "--output", str(refused), "--variants",
+                                             "entropy_ranking_weight=-1"])
+        assert not refused.exists()
 
 
 class TestRotationGains:
