@@ -65,9 +65,14 @@ class SolverConfig:
         entropy_bins: 3-D only: when at least 2, the entropy images (:mod:`dpcn_med.solver.entropy`) of both volumes,
             with this many histogram bins, go through every correlation the volumes go through, and their peaks join
             the candidates: rotations that a non-monotonic intensity map between the two volumes does not move.
-            Near-duplicates are dropped within each source; all are ranked on the volumes. 0: none (why 8:
-            docs/design_notes/solver.md).
+            Near-duplicates are dropped within each source; all are ranked together, as ``entropy_ranking_weight``
+            says. 0: none (why 8: docs/design_notes/solver.md).
         entropy_sigma: the entropy images' window, standard deviation in grid voxels.
+        entropy_ranking_weight: 3-D only, with ``entropy_bins``: the candidates are ranked by their translation peak
+            on the volumes plus this times their peak on the entropy images, each divided by its best over the
+            volume's candidates (0: by the volumes' peak alone). Not where :func:`dpcn_med.solver.solve` ranks on
+            ``score_volumes`` (a model's translation features, whose ranking it trains). Why 1:
+            docs/design_notes/solver.md.
         peaks: rotation peaks carried through scale and translation (top-k).
         half_turns: also try each peak composed with the 180-degree turns about the grid axes (both frames).
         rotation_half_width: half-width, in grid cells, of the SO(3) soft arg-max window.
@@ -105,6 +110,7 @@ class SolverConfig:
     extra_degree_two_weights: tuple[float, ...] = (0.3,)
     entropy_bins: int = 8
     entropy_sigma: float = 1.0
+    entropy_ranking_weight: float = 1.0
     peaks: int = 4
     half_turns: bool = True
     rotation_half_width: int = 1
@@ -154,6 +160,8 @@ class SolverConfig:
             raise InputError("entropy_bins is 1: one bin has no entropy; expected 0 (no entropy images) or 2 to 256")
         checked["entropy_sigma"] = check_real("entropy_sigma", self.entropy_sigma, minimum=0.0, above=True,
                                               maximum=16.0)
+        checked["entropy_ranking_weight"] = check_real("entropy_ranking_weight", self.entropy_ranking_weight,
+                                                       minimum=0.0, maximum=16.0)
         checked["max_scale"] = check_real("max_scale", self.max_scale, minimum=1.0, above=True)
         for name in ("sphere_band", "scale_band", "log_polar_band"):
             checked[name] = _band(name, getattr(self, name))

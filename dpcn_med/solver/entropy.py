@@ -6,8 +6,9 @@ Relabelling the intensities, even in a non-monotonic order (two MR contrasts tha
 permutes the histogram's bins and leaves the entropy as it was (nearly: the soft bins spread each level over its
 neighbours, which a reordering changes): uniform tissue maps to low values, boundaries between tissues to high ones,
 on either side of a pair. The solver correlates the entropy images' spheres as one more source of rotation
-candidates (:attr:`dpcn_med.solver.SolverConfig.entropy_bins`); the candidates are still ranked, and the translation
-found, on the volumes themselves.
+candidates (:attr:`dpcn_med.solver.SolverConfig.entropy_bins`), and ranks every candidate by its translation peak on
+the entropy images beside the volumes' (:attr:`dpcn_med.solver.SolverConfig.entropy_ranking_weight`); the translation
+is found on the volumes themselves.
 """
 
 from __future__ import annotations

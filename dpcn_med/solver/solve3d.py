@@ -45,7 +45,8 @@ class Alternatives:
         scale: ``(batch, A)``.
         translation: ``(batch, A, 3)`` voxels ``(x, y, z)``.
         confidence: ``(batch, A)`` softmax mass of each translation peak, as :attr:`SolveResult.confidence`.
-        score: ``(batch, A)`` the solver's ranking score: the translation-peak height on the finalist grid for
+        score: ``(batch, A)`` the solver's ranking score: the translation-peak height (with the entropy images',
+            the sum of each relative to its best: ``SolverConfig.entropy_ranking_weight``) on the finalist grid for
             the finalists, on the coarse grid after them; ``-inf`` marks a slot for which no plausible candidate was
             left: ignore its pose.
     """
@@ -127,6 +128,8 @@ class _Spectra:
         fixed_coeffs: ``(batch, L, 2M + 1)`` harmonic coefficients of each correlation's fixed sphere, weighted by
             degree.
         moving_coeffs: same for the moving spheres.
+        entropy: ``(fixed, moving)`` the volumes' entropy images ``(batch, N, N, N)`` (no graph), or ``None``
+            without ``entropy_bins``.
     """
 
     fixed_magnitude: Tensor
@@ -137,6 +140,7 @@ class _Spectra:
     spheres: list[tuple[Tensor, Tensor]]
     fixed_coeffs: list[Tensor]
     moving_coeffs: list[Tensor]
+    entropy: tuple[Tensor, Tensor] | None = None
 
 
 def _sphere(magnitude: Tensor, band: tuple[float, float], config: SolverConfig, directions: Tensor, weights: Tensor
@@ -159,18 +163,20 @@ def _spectra(fixed_volume: Tensor, moving_volume: Tensor, bandwidth: int, config
     degrees = even_degrees(bandwidth)
     magnitudes = (magnitude_spectrum(fixed_volume, 3, config.taper), magnitude_spectrum(moving_volume, 3, config.taper))
     spheres, fixed_coeffs, moving_coeffs = _correlated(*magnitudes, config, directions, weights, degrees)
+    entropy = None
     if config.entropy_bins:  # why: docs/design_notes/solver.md
         # Proposals only, without a graph: no loss reaches them but through the choice, which is made under no_grad,
         # and their graph would double a training step's time and memory.
         with torch.no_grad():
-            entropy = (magnitude_spectrum(entropy_image(volume, config.entropy_bins, config.entropy_sigma), 3,
-                                          config.taper) for volume in (fixed_volume, moving_volume))
-            more = _correlated(*entropy, config, directions, weights, degrees)
+            entropy = tuple(entropy_image(volume, config.entropy_bins, config.entropy_sigma)
+                            for volume in (fixed_volume, moving_volume))
+            more = _correlated(*(magnitude_spectrum(image, 3, config.taper) for image in entropy), config,
+                               directions, weights, degrees)
         spheres, fixed_coeffs, moving_coeffs = (first + second for first, second in
                                                 zip((spheres, fixed_coeffs, moving_coeffs), more))
     return _Spectra(fixed_magnitude=magnitudes[0], moving_magnitude=magnitudes[1], directions=directions,
                     weights=weights, degrees=degrees, spheres=spheres, fixed_coeffs=fixed_coeffs,
-                    moving_coeffs=moving_coeffs)
+                    moving_coeffs=moving_coeffs, entropy=entropy)
 
 
 def _correlated(fixed_magnitude: Tensor, moving_magnitude: Tensor, config: SolverConfig, directions: Tensor,
@@ -276,23 +282,37 @@ def candidate_scores(fixed: Tensor, moving: Tensor, linear: Tensor, size: int, t
     return scores.new_full(keep.shape, float("-inf")).index_copy(1, columns, scores).masked_fill(~keep, float("-inf"))
 
 
+def _ranking_scores(fixed: Tensor, moving: Tensor, entropy: tuple[Tensor, Tensor] | None, linear: Tensor,
+                    size: int, config: SolverConfig, keep: Tensor | None = None) -> Tensor:
+    """:func:`candidate_scores` on the volumes, and with ``entropy`` (both volumes' entropy images) plus
+    ``entropy_ranking_weight`` times the same on the entropy images, each divided by its best over the volume's
+    candidates (their peaks have scales of their own)."""
+    scores = candidate_scores(fixed, moving, linear, size, config.taper, keep=keep)
+    if entropy is None:
+        return scores
+    images = candidate_scores(*entropy, linear, size, config.taper, keep=keep)
+    return sum(weight * part / part.amax(-1, keepdim=True).clamp_min(torch.finfo(part.dtype).tiny)
+               for weight, part in ((1.0, scores), (config.entropy_ranking_weight, images)))
+
+
 def _rank_candidates(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score: Tensor, keep: Tensor,
-                     config: SolverConfig) -> tuple[Tensor, Tensor]:
+                     config: SolverConfig, entropy: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """The candidates ``linear (batch, K, 3, 3)`` (scaled rotations) ranked, best first: indices ``(batch, K)`` and
     scores ``(batch, K)``: the finalists by their fine score, then the others by their coarse score; ``-inf`` marks
     an implausible candidate.
 
     Candidates whose sphere correlation falls more than ``sphere_margin`` below the best are implausible; the rest
     are scored by their translation peak on a coarse grid, and the ``finalists`` best are scored again on a finer one
-    (why two grids: docs/design_notes/solver.md).
+    (why two grids: docs/design_notes/solver.md); with ``entropy``, the volumes' entropy images ``(fixed, moving)``,
+    each score is :func:`_ranking_scores`' sum over the volumes and their entropy images.
     """
     plausible = keep & (sphere_score >= sphere_score.masked_fill(~keep, float("-inf")).amax(-1, keepdim=True)
                         - config.sphere_margin)
-    coarse = candidate_scores(fixed, moving, linear, config.candidate_size, config.taper, keep=plausible)
+    coarse = _ranking_scores(fixed, moving, entropy, linear, config.candidate_size, config, keep=plausible)
     finalists = coarse.topk(min(config.finalists, coarse.shape[1]), dim=-1)
     finalist_linear = linear.gather(1, finalists.indices[..., None, None].expand(-1, -1, 3, 3))
-    fine = candidate_scores(fixed, moving, finalist_linear, config.finalist_size, config.taper)
-    fine = fine.masked_fill(finalists.values == float("-inf"), float("-inf"))
+    fine = _ranking_scores(fixed, moving, entropy, finalist_linear, config.finalist_size, config,
+                           keep=finalists.values > float("-inf"))
     ranked = fine.sort(-1, descending=True)
     # The other candidates follow, by their coarse score (-inf: implausible).
     rest = coarse.scatter(1, finalists.indices, float("-inf")).sort(-1, descending=True)
@@ -302,8 +322,8 @@ def _rank_candidates(fixed: Tensor, moving: Tensor, linear: Tensor, sphere_score
 
 
 def _resolve_candidates(fixed_volume: Tensor, moving_volume: Tensor, spectra: _Spectra, per_band: list[Tensor],
-                        candidates: Tensor, mode: str, config: SolverConfig, temperatures: StageTemperatures
-                        ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                        candidates: Tensor, mode: str, config: SolverConfig, temperatures: StageTemperatures,
+                        entropy: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Drop near-duplicate and implausible candidates, measure each one's scale, rank them by translation peak.
 
     Args:
@@ -312,6 +332,7 @@ def _resolve_candidates(fixed_volume: Tensor, moving_volume: Tensor, spectra: _S
         per_band: ``(batch, K_b, 3, 3)`` the candidates of each band.
         candidates: ``(batch, K, 3, 3)`` all of them, ``per_band`` concatenated.
         mode, config, temperatures: as :func:`solve`.
+        entropy: entropy images ``(fixed, moving)`` to rank on beside the volumes (:func:`_rank_candidates`).
 
     Returns:
         ``(keep, scale, ranked, score)``: ``(batch, K)`` the candidates left after dropping near-duplicates, their
@@ -334,7 +355,7 @@ def _resolve_candidates(fixed_volume: Tensor, moving_volume: Tensor, spectra: _S
     else:
         scale = torch.ones(*candidates.shape[:2], device=candidates.device, dtype=candidates.dtype)
     ranked, score = _rank_candidates(fixed_volume, moving_volume, scale[..., None, None] * candidates, sphere_score,
-                                     keep, config)
+                                     keep, config, entropy)
     return keep, scale, ranked, score
 
 
@@ -457,8 +478,12 @@ def solve(fixed: Tensor, moving: Tensor, mode: str = "similarity", *, config: So
         per_band, origin = _rotation_peaks(correlations, config, temperatures.rotation)
         candidates = torch.cat(per_band, 1)
     with clock("candidates"), torch.no_grad():
+        # The volumes' entropy images rank beside them, not beside a model's translation features, which it trains
+        # to rank alone.
+        entropy = spectra.entropy if score_volumes is None and config.entropy_ranking_weight > 0 else None
         keep, candidate_scale, ranked, ranked_score = _resolve_candidates(
-            score_fixed.detach(), score_moving.detach(), spectra, per_band, candidates, mode, config, temperatures)
+            score_fixed.detach(), score_moving.detach(), spectra, per_band, candidates, mode, config, temperatures,
+            entropy)
     rows = torch.arange(fixed.shape[0], device=fixed.device)[:, None]
     rotation = candidates[rows[:, 0], ranked[:, 0]]
     alternatives = None

@@ -1,4 +1,5 @@
-"""Entropy images: near-invariance to a reordering of the intensities, range, smoothing, rotation candidates."""
+"""Entropy images: near-invariance to a reordering of the intensities, range, smoothing, rotation candidates and
+their ranking."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from dpcn_med.solver import solve
+from dpcn_med.solver import SolverConfig, solve
 from dpcn_med.solver.entropy import _smooth, entropy_image
+from dpcn_med.solver.solve3d import candidate_scores
 from dpcn_med.synth import random_poses
 from tests.conftest import volume_grid
 
@@ -88,3 +90,25 @@ class TestEntropyCandidates:
             pose.rotation[None].to(torch.float32)).amin().item() for bins in (0, 8)}
         assert nearest[8] < 3.0
         assert nearest[8] < 0.6 * nearest[0]
+
+
+class TestEntropyRanking:
+    @pytest.mark.parametrize("weight", [0.0, 1.0, 2.5])
+    def test_the_finalists_rank_by_both_relative_peaks(self, weight):
+        """The finalists' scores are their translation peaks on the volumes and on the entropy images, each divided
+        by its best among them, summed with the weight: recomputed here from :func:`candidate_scores`."""
+        labels = quantised_head(32)
+        pose = random_poses(1, 32, seed=3)[0]
+        fixed, moving = labels / (LEVELS - 1), pose.moving_from(REORDERED[labels.long()])
+        config = SolverConfig(entropy_ranking_weight=weight)
+        ranking = solve(fixed, moving, "rigid", config=config).ranking
+        count = min(config.finalists, int((ranking.score[0] > float("-inf")).sum()))
+        assert count >= 2
+        linear = ranking.rotation[:, :count]
+        peaks = candidate_scores(fixed[:, 0], moving[:, 0], linear, config.finalist_size, config.taper)
+        images = [entropy_image(volume[:, 0], config.entropy_bins, config.entropy_sigma) for volume in (fixed, moving)]
+        image_peaks = candidate_scores(*images, linear, config.finalist_size, config.taper)
+        # Weight 0: the volumes' peaks as they are, as before the entropy ranking.
+        expected = peaks / peaks.amax() + weight * image_peaks / image_peaks.amax() if weight else peaks
+        torch.testing.assert_close(ranking.score[:, :count], expected, rtol=1e-4, atol=1e-5)
+        assert (ranking.score[0, :count].diff() <= 0).all()

@@ -120,6 +120,7 @@ class TestSolverConfig:
         ("entropy_bins", 1, r"entropy_bins is 1: one bin has no entropy; expected 0"),
         ("entropy_bins", -1, r"entropy_bins is -1; expected an integer >= 0 and <= 256"),
         ("entropy_sigma", 0.0, r"entropy_sigma is 0\.0; expected a finite number > 0 and <= 16"),
+        ("entropy_ranking_weight", -0.5, r"entropy_ranking_weight is -0\.5; expected a finite number >= 0 and <= 16"),
         ("sphere_margin", float("inf"), r"sphere_margin is inf; expected a finite number >= 0"),
         ("sphere_margin", "0.25", r"sphere_margin is '0\.25' \(str\); expected a finite number"),
         ("sphere_band", (0.6, 0.05), r"sphere_band is \(0\.6, 0\.05\); expected \(low, high\) .* 0 < low < high <= 1"),
@@ -353,10 +354,12 @@ class TestRanking:
         fixed = volume_grid("mni", 32)
         pose = random_poses(1, 32, seed=14)[0]
         moving = pose.moving_from(fixed)
-        plain = solve(fixed, moving, "rigid")
+        plain = solve(fixed, moving, "rigid", entropy_ranking_weight=0.0)
         same = solve(fixed, moving, "rigid", score_volumes=(fixed, moving))
         torch.testing.assert_close(same.rotation, plain.rotation)
         torch.testing.assert_close(same.ranking.score, plain.ranking.score)
+        # score_volumes rank alone: the entropy images, which the inputs rank beside by default, do not join them.
+        assert not torch.equal(solve(fixed, moving, "rigid").ranking.score, plain.ranking.score)
         # Scored on other volumes (a learned model's translation features), the ranking is theirs: on noise it is
         # not the inputs' any more.
         noise = torch.rand((2, *fixed.shape), generator=torch.Generator().manual_seed(0))
