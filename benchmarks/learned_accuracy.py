@@ -97,17 +97,13 @@ def main(argv: list[str] | None = None) -> int:
              "median translation error (voxels) | 90th percentile rotation error (deg) | "
              "a candidate within 5 deg |",
              "|---|" + ("---|" if args.per_volume else "") + "---|---|---|---|---|---|"]
-    for name in [*args.models, *args.variants]:
+    # The learning-free solver is a variant that changes nothing.
+    for name in [{} if name.lower() in LEARNING_FREE else name for name in args.models] + args.variants:
         if isinstance(name, dict):
-            label = "learning-free solver, " + ", ".join(f"`{field}={value!r}`" for field, value in name.items())
+            label = ", ".join(["learning-free solver", *(f"`{field}={value!r}`" for field, value in name.items())])
 
             def predict(fixed, moving, options=name):
                 return solve(fixed, moving, mode, bandwidth=bandwidth, **options)
-        elif name.lower() in LEARNING_FREE:
-            label = "learning-free solver"
-
-            def predict(fixed, moving):
-                return solve(fixed, moving, mode, bandwidth=bandwidth)
         else:
             model = load_model(name, device=device)
             label = f"`{name}`"
