@@ -30,7 +30,7 @@ import torch
 from dpcn_med.benchmark import BASELINE_REFINEMENT
 from dpcn_med.evaluation import foreground_corners, moved_copy
 from dpcn_med.geometry import homogeneous_matrix, random_rotation, scale_and_rotation, similarity_transform
-from dpcn_med.preprocess import Preprocessing, foreground_box, prepare
+from dpcn_med.preprocess import Preprocessing, dilate, foreground_box, prepare
 from dpcn_med.refine import mattes_metric, refine_transform
 from dpcn_med.registration import register
 
@@ -85,7 +85,7 @@ def exhaustive_search(fixed: sitk.Image, moving: sitk.Image, starts: int) -> tup
     preprocessing, refinement = Preprocessing(), BASELINE_REFINEMENT
     fixed_prepared = prepare(fixed, config=preprocessing)
     moving_centre = foreground_box(moving)[0]
-    mask = sitk.BinaryDilate(fixed_prepared.foreground, [BASELINE_REFINEMENT.mask_margin_voxels] * 3)
+    mask = dilate(fixed_prepared.foreground, BASELINE_REFINEMENT.mask_margin_voxels)
     centre = np.asarray(fixed_prepared.centre, dtype=float)
     rotations = cube_rotations()
     extra = random_rotation(max(0, starts - len(rotations)), torch.Generator().manual_seed(0)).numpy()
@@ -117,7 +117,7 @@ def reference_alignment(fixed: sitk.Image, moving: sitk.Image, starts: int, corn
     # The usual local start: image centres aligned, no rotation (SimpleITK's GEOMETRY initialiser).
     centre_start = sitk.CenteredTransformInitializer(fixed, moving, sitk.VersorRigid3DTransform(),
                                                      sitk.CenteredTransformInitializerFilter.GEOMETRY)
-    mask = sitk.BinaryDilate(prepare(fixed).foreground, [BASELINE_REFINEMENT.mask_margin_voxels] * 3)
+    mask = dilate(prepare(fixed).foreground, BASELINE_REFINEMENT.mask_margin_voxels)
     local = refine_transform(fixed, moving, centre_start, (mask, None), BASELINE_REFINEMENT)
     local_angle, local_distance = difference(local, reference, corners)
     return {"reference": reference, "starts": len(runs), "seconds": search_seconds, "reached": len(reached),

@@ -12,7 +12,7 @@ from numpy.typing import ArrayLike
 from dpcn_med.arguments import shown
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import homogeneous_matrix, scale_and_rotation
-from dpcn_med.preprocess import foreground_mask
+from dpcn_med.preprocess import bounding_box, foreground_mask
 
 SUCCESS_DEGREES, SUCCESS_VOXELS = 5.0, 2.0
 """A global estimate is right within 5 degrees and 2 voxels of its canonical grid: the solver's own criterion (the
@@ -73,12 +73,11 @@ def foreground_corners(image: sitk.Image, mask: sitk.Image | None = None) -> np.
     Raises:
         InputError: the foreground (or ``mask``) is empty.
     """
-    stats = sitk.LabelShapeStatisticsImageFilter()
-    stats.Execute(foreground_mask(image) if mask is None else sitk.Cast(mask > 0, sitk.sitkUInt8))
-    if not stats.HasLabel(1):
+    box = bounding_box(foreground_mask(image) if mask is None else mask)
+    if box is None:
         raise InputError("mask is empty (no voxel > 0); give a mask with foreground" if mask is not None else
                          "image has no foreground (it is blank or constant); corners need an object to surround")
-    start, size = np.split(np.asarray(stats.GetBoundingBox(1), dtype=np.float64), 2)
+    start, size = (values.astype(np.float64) for values in box)
     corners = [start - 0.5 + size * np.array(c) for c in np.ndindex(2, 2, 2)]
     grid = image if mask is None else mask  # the box is in the mask's voxels, whatever its grid
     return np.array([grid.TransformContinuousIndexToPhysicalPoint(c.tolist()) for c in corners])

@@ -180,8 +180,39 @@ def foreground_mask(image: sitk.Image, mask: sitk.Image | None = None) -> sitk.I
     if counted is not None and not counted.any():
         return _binary_like(image, counted)
     components = sitk.RelabelComponent(sitk.ConnectedComponent(_otsu(image, counted)[0]), sortByObjectSize=True)
-    filled = sitk.BinaryFillhole(components == 1)
+    filled = _fill_holes(components == 1)
     return filled if mask is None else sitk.And(filled, mask > 0)
+
+
+def _fill_holes(mask: sitk.Image) -> sitk.Image:
+    """``mask`` (uint8, 0 or 1) with every background region that no path through faces connects to the image's
+    border filled: uint8, the voxels of ``sitk.BinaryFillhole(mask)``.
+
+    Our own: labelling the background once takes a fifth of BinaryFillhole's time on a 1.5-million-voxel head mask
+    (16 against 83 ms) and half of scipy's ``binary_fill_holes`` (31 ms; 60-73 against 29 ms on a 2.8-million-voxel
+    one, whose time grows with the holes' depth).
+    """
+    background = sitk.ConnectedComponent(mask == 0)  # face connectivity: fullyConnected is off
+    labels = sitk.GetArrayViewFromImage(background)
+    outside = np.unique(np.concatenate([labels.take(end, axis).ravel() for axis in range(3) for end in (0, -1)]))
+    kept = np.ones(int(labels.max()) + 1, dtype=bool)
+    kept[outside] = False
+    kept[0] = True  # the mask itself
+    return _binary_like(mask, kept[labels])
+
+
+def dilate(mask: sitk.Image, radius: int) -> sitk.Image:
+    """``mask`` (binary, 0 outside) dilated by a ball of ``radius`` voxels: uint8, 1 on every voxel whose centre lies
+    within ``radius + 1/2`` voxels (counted in voxels along each axis, whatever the spacing) of a voxel of ``mask``.
+
+    The same voxels as ``sitk.BinaryDilate(mask, [radius] * 3)``, whose ball holds the offsets of squared length up
+    to ``radius * (radius + 1)``; from a squared distance map (ITK's Maurer), half the time on a 1.5-million-voxel
+    head mask (46 against 107 ms at radius 3).
+    """
+    radius = check_integer("radius", radius, minimum=0)
+    distance = sitk.SignedMaurerDistanceMap(mask, insideIsPositive=False, squaredDistance=True,
+                                            useImageSpacing=False)
+    return distance <= radius * (radius + 1)
 
 
 def foreground_box(image: sitk.Image, mask: sitk.Image | None = None) -> tuple[np.ndarray, float]:
@@ -194,15 +225,25 @@ def foreground_box(image: sitk.Image, mask: sitk.Image | None = None) -> tuple[n
     Raises:
         InputError: the image has no foreground (empty or constant).
     """
-    stats = sitk.LabelShapeStatisticsImageFilter()
-    stats.Execute(foreground_mask(image) if mask is None else mask)
-    if not stats.HasLabel(1):
+    box = bounding_box(foreground_mask(image) if mask is None else mask)
+    if box is None:
         raise InputError("image has no foreground (empty or constant intensity)")
-    start_x, start_y, start_z, size_x, size_y, size_z = stats.GetBoundingBox(1)
-    first = np.array(image.TransformContinuousIndexToPhysicalPoint((start_x - 0.5, start_y - 0.5, start_z - 0.5)))
-    last = np.array(image.TransformContinuousIndexToPhysicalPoint(
-        (start_x + size_x - 0.5, start_y + size_y - 0.5, start_z + size_z - 0.5)))
+    start, size = box
+    first = np.array(image.TransformContinuousIndexToPhysicalPoint((start - 0.5).tolist()))
+    last = np.array(image.TransformContinuousIndexToPhysicalPoint((start + size - 0.5).tolist()))
     return (first + last) / 2, float(np.linalg.norm(last - first))
+
+
+def bounding_box(mask: sitk.Image) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(start, size)``: the first voxel index ``(x, y, z)`` and the voxel counts of the box that holds every voxel
+    of ``mask`` above 0 (int64 arrays), or ``None`` where there is none."""
+    statistics = sitk.LabelShapeStatisticsImageFilter()
+    statistics.ComputePerimeterOff()  # on by default: six times the box's time on a head mask (18 against 3 ms)
+    statistics.Execute(sitk.Cast(mask > 0, sitk.sitkUInt8))
+    if not statistics.HasLabel(1):
+        return None
+    start, size = np.split(np.asarray(statistics.GetBoundingBox(1), dtype=np.int64), 2)
+    return start, size
 
 
 def normalize_intensity(image: sitk.Image, percentiles: tuple[float, float] = (1.0, 99.0),

@@ -40,7 +40,7 @@ from dpcn_med.local_search import (
     with_gradient,
 )
 from dpcn_med.mutual_information import bin_entropy
-from dpcn_med.preprocess import clip_outliers
+from dpcn_med.preprocess import bounding_box, clip_outliers, dilate
 
 Masks = tuple[sitk.Image | None, sitk.Image | None]
 
@@ -165,9 +165,7 @@ def check_mask_extent(mask: sitk.Image | None, name: str, settings: Refinement) 
     """
     if mask is None:
         return
-    statistics = sitk.LabelShapeStatisticsImageFilter()
-    statistics.Execute(sitk.Cast(mask > 0, sitk.sitkUInt8))
-    box = np.asarray(statistics.GetBoundingBox(1)[3:])  # io.check_mask refused an empty mask
+    box = bounding_box(mask)[1]  # io.check_mask refused an empty mask
     needed = MIN_LEVEL_VOXELS * np.asarray(level_factors(mask.GetSize(), settings.shrink_factors[0]))
     if (box < needed).any():
         spacing = np.asarray(mask.GetSpacing())
@@ -189,7 +187,7 @@ def metric_masks(fixed_mask: sitk.Image | None, fixed_foreground: sitk.Image, mo
     (:func:`correlation_levels`)."""
     if fixed_mask is not None or ultrasound == "fixed":
         return fixed_mask, moving_mask
-    return sitk.BinaryDilate(fixed_foreground, [settings.mask_margin_voxels] * 3), moving_mask
+    return dilate(fixed_foreground, settings.mask_margin_voxels), moving_mask
 
 
 def _registration_method(fixed: sitk.Image, masks: Masks, settings: Refinement) -> sitk.ImageRegistrationMethod:
@@ -212,11 +210,10 @@ def _registration_method(fixed: sitk.Image, masks: Masks, settings: Refinement) 
 
 def _crop_to_mask(image: sitk.Image, mask: sitk.Image) -> sitk.Image:
     """``image`` cropped to the box (on its own grid) that holds every voxel of ``mask`` (any grid, same space)."""
-    statistics = sitk.LabelShapeStatisticsImageFilter()
-    statistics.Execute(sitk.Cast(mask > 0, sitk.sitkUInt8))
-    if not statistics.HasLabel(1):
+    box = bounding_box(mask)
+    if box is None:
         return image
-    start, size = np.split(np.asarray(statistics.GetBoundingBox(1)), 2)
+    start, size = box
     corners = [mask.TransformContinuousIndexToPhysicalPoint((start + (size - 1) * np.asarray(corner) + 0.5 * (
         2 * np.asarray(corner) - 1)).tolist()) for corner in np.ndindex(2, 2, 2)]
     indices = np.array([image.TransformPhysicalPointToContinuousIndex(point) for point in corners])

@@ -11,8 +11,10 @@ from dpcn_med.errors import InputError
 from dpcn_med.geometry import grid_centre
 from dpcn_med.preprocess import (
     Preprocessing,
+    bounding_box,
     canonical_grid,
     detect_modality,
+    dilate,
     foreground_box,
     foreground_mask,
     normalize_intensity,
@@ -172,6 +174,66 @@ class TestForegroundMask:
         image = sitk.GetImageFromArray(array)
         mask = _on_grid(lungs.astype(np.uint8), image)
         np.testing.assert_array_equal(sitk.GetArrayFromImage(foreground_mask(image, mask)), lungs)
+
+
+    def test_holes_are_filled_as_simpleitk_fills_them(self):
+        """Enclosed cavities are filled; one open to the border through a face is not; one that reaches the outside
+        only through an edge or a corner is enclosed (face connectivity), as SimpleITK's BinaryFillhole has it."""
+        array = np.zeros((20, 24, 28), dtype=np.float32)
+        array[2:18, 3:21, 4:24] = 100.0
+        array[5:9, 6:10, 7:11] = 0.0  # enclosed
+        array[10:14, 12:16, 4:24] = 0.0  # a tunnel through the object, open on two faces
+        array[4:7, 5:8, 18:21] = 0.0  # enclosed, but for a chain of voxels that meet at corners only:
+        array[3, 4, 17] = array[2, 3, 16] = 0.0  # the last of them lies on the surface
+        rng = np.random.default_rng(7)
+        array[rng.random(array.shape) < 0.02] = 0.0  # pinholes, some on the object's surface
+        image = sitk.GetImageFromArray(array)
+        largest = sitk.RelabelComponent(sitk.ConnectedComponent(image > 50), sortByObjectSize=True) == 1
+        expected = sitk.GetArrayFromImage(sitk.BinaryFillhole(largest))
+        foreground = sitk.GetArrayFromImage(foreground_mask(image))
+        np.testing.assert_array_equal(foreground, expected)
+        assert foreground[6, 7, 8] == foreground[5, 6, 19] == foreground[3, 4, 17] == 1
+        assert foreground[11, 13, 10] == foreground[2, 3, 16] == 0
+
+
+class TestBoundingBox:
+    def test_every_voxel_above_zero_counts(self):
+        """Labels other than 1 are inside too; the box is in voxels (x, y, z), whatever the spacing."""
+        array = np.zeros((16, 20, 40), dtype=np.int16)
+        array[8:12, 5:15, 10:30] = 1
+        array[3, 17, 35] = 7
+        mask = sitk.GetImageFromArray(array)
+        mask.SetSpacing((1.0, 2.0, 3.0))
+        start, size = bounding_box(mask)
+        np.testing.assert_array_equal(start, [10, 5, 3])
+        np.testing.assert_array_equal(size, [26, 13, 9])
+
+    def test_an_empty_mask_has_none(self):
+        assert bounding_box(sitk.Image([5, 4, 3], sitk.sitkUInt8)) is None
+
+
+class TestDilate:
+    @pytest.mark.parametrize("radius", [0, 1, 2, 3, 5])
+    def test_the_voxels_of_simpleitks_ball(self, radius):
+        """Sparse voxels, some on the border, on an anisotropic grid: the ball counts voxels, not mm."""
+        array = (np.random.default_rng(radius).random((18, 15, 12)) > 0.993).astype(np.uint8)
+        array[0, 0, 0] = array[-1, 7, 11] = 1
+        mask = sitk.GetImageFromArray(array)
+        mask.SetSpacing((0.5, 1.0, 3.0))
+        mask.SetOrigin((4.0, -2.0, 1.0))
+        dilated = dilate(mask, radius)
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(dilated),
+                                      sitk.GetArrayFromImage(sitk.BinaryDilate(mask, [radius] * 3)))
+        assert dilated.GetPixelID() == sitk.sitkUInt8
+        assert (dilated.GetSpacing(), dilated.GetOrigin()) == (mask.GetSpacing(), mask.GetOrigin())
+
+    def test_an_empty_mask_stays_empty(self):
+        mask = sitk.Image([6, 5, 4], sitk.sitkUInt8)
+        assert not sitk.GetArrayFromImage(dilate(mask, 3)).any()
+
+    def test_a_negative_radius_is_refused(self):
+        with pytest.raises(InputError, match="radius is -1"):
+            dilate(sitk.Image([4, 4, 4], sitk.sitkUInt8), -1)
 
 
 class TestCanonicalGrid:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import SimpleITK as sitk
 
-from dpcn_med.preprocess import foreground_mask
+from dpcn_med.preprocess import dilate, foreground_mask
 from dpcn_med.refine import Refinement, refine_transform
 from dpcn_med.registration import register
 
@@ -22,7 +22,7 @@ BASELINE_REFINEMENT = Refinement(max_step_mm=2.0)
 
 
 def _mask(fixed: sitk.Image) -> sitk.Image:
-    return sitk.BinaryDilate(foreground_mask(fixed), [Refinement().mask_margin_voxels] * 3)
+    return dilate(foreground_mask(fixed), Refinement().mask_margin_voxels)
 
 
 def _sitk_initialised(kind: int) -> Callable[[sitk.Image, sitk.Image, Path], sitk.Transform]:
