@@ -188,9 +188,8 @@ def _fill_holes(mask: sitk.Image) -> sitk.Image:
     """``mask`` (uint8, 0 or 1) with every background region that no path through faces connects to the image's
     border filled: uint8, the voxels of ``sitk.BinaryFillhole(mask)``.
 
-    Our own: labelling the background once takes a fifth of BinaryFillhole's time on a 1.5-million-voxel head mask
-    (16 against 83 ms) and half of scipy's ``binary_fill_holes`` (31 ms; 60-73 against 29 ms on a 2.8-million-voxel
-    one, whose time grows with the holes' depth).
+    Our own: labelling the background once is several times faster than either BinaryFillhole or scipy's
+    ``binary_fill_holes`` on a head mask (docs/design_notes/preprocess.md).
     """
     background = sitk.ConnectedComponent(mask == 0)  # face connectivity: fullyConnected is off
     labels = sitk.GetArrayViewFromImage(background)
@@ -206,8 +205,8 @@ def dilate(mask: sitk.Image, radius: int) -> sitk.Image:
     within ``radius + 1/2`` voxels (counted in voxels along each axis, whatever the spacing) of a voxel of ``mask``.
 
     The same voxels as ``sitk.BinaryDilate(mask, [radius] * 3)``, whose ball holds the offsets of squared length up
-    to ``radius * (radius + 1)``; from a squared distance map (ITK's Maurer), half the time on a 1.5-million-voxel
-    head mask (46 against 107 ms at radius 3).
+    to ``radius * (radius + 1)``, from a squared distance map (ITK's Maurer) in half its time
+    (docs/design_notes/preprocess.md).
     """
     radius = check_integer("radius", radius, minimum=0)
     distance = sitk.SignedMaurerDistanceMap(mask, insideIsPositive=False, squaredDistance=True,
@@ -238,7 +237,7 @@ def bounding_box(mask: sitk.Image) -> tuple[np.ndarray, np.ndarray] | None:
     """``(start, size)``: the first voxel index ``(x, y, z)`` and the voxel counts of the box that holds every voxel
     of ``mask`` above 0 (int64 arrays), or ``None`` where there is none."""
     statistics = sitk.LabelShapeStatisticsImageFilter()
-    statistics.ComputePerimeterOff()  # on by default: six times the box's time on a head mask (18 against 3 ms)
+    statistics.ComputePerimeterOff()  # on by default, and most of the filter's time on a head mask
     statistics.Execute(sitk.Cast(mask > 0, sitk.sitkUInt8))
     if not statistics.HasLabel(1):
         return None

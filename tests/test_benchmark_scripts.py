@@ -53,6 +53,10 @@ class TestCounts:
         ("partial_fov", ["--seed", "-1"], "argument --seed: -1 is too few; give at least 0"),
         ("failure_signals", ["--seed", "-1"], "argument --seed: -1 is too few; give at least 0"),
         ("cli_time", ["--repeats", "0"], "argument --repeats: 0 is too few"),
+        ("stage_time", ["--poses", "0"], "argument --poses: 0 is too few"),
+        ("stage_time", ["--rounds", "0"], "argument --rounds: 0 is too few"),
+        ("stage_time", ["--cases", "mni-t2"], "argument --cases: invalid choice: 'mni-t2'"),
+        ("stage_time", ["--compare", "nowhere"], "--compare nowhere: not a dpcn_med source tree"),
         ("solver_speed", ["--repeats", "0"], "argument --repeats: 0 is too few"),
         ("solver_speed", ["--devices", "gpu"], "argument --devices: 'gpu' is not a torch device"),
         ("ultrasound", ["--trials", "0"], "argument --trials: 0 is too few"),
@@ -211,6 +215,47 @@ class TestCliTime:
         rows = [line.strip("|").split(" | ") for line in output.read_text().splitlines() if "| no-refine |" in line]
         totals = {cells[0].strip(): cells[9].strip() for cells in rows}
         assert totals == {str(tmp_path / "main"): "1.00", str(old.resolve()): "2.00"}
+
+
+class TestStageTime:
+    def test_trees_alternate_and_each_stage_is_compared_with_the_first(self, tmp_path, monkeypatch):
+        """Each worker's seconds are merged over the rounds; the second tree's medians read as ratios."""
+        stage_time = script("stage_time")
+        old = _fake_tree(tmp_path / "old", 1.0)
+        asked, real = [], subprocess.run
+
+        def run(command, **options):
+            if command[0] == "git":  # source_label's, through the same module
+                return real(command, **options)
+            tree = Path(options["cwd"])
+            asked.append((tree.name, command[3]))
+            slow = 2.0 if tree == old else 1.0
+            seconds = {"preprocess": [0.1 * slow, 0.3 * slow], "solve": [0.2, 0.2], "refine": [0.5, 0.7],
+                       "whole": [1.0 * slow, 1.2 * slow]}
+            return subprocess.CompletedProcess(command, 0, stdout=f"warming up\n{json.dumps(seconds)}\n")
+
+        monkeypatch.setattr(stage_time.subprocess, "run", run)
+        output = tmp_path / "stage_time.md"
+        assert stage_time.main(["--cases", "mni", "seg3d", "--rounds", "2", "--compare", str(old),
+                                "--output", str(output)]) == 0
+        main = stage_time.ROOT.name
+        assert asked == [(main, "mni"), ("old", "mni"), (main, "seg3d"), ("old", "seg3d")] * 2
+        rows = {tuple(cells[:2]): cells[2:] for cells in (
+            [cell.strip() for cell in line.strip("|").split("|")] for line in output.read_text().splitlines()
+            if line.startswith("| mni |"))}
+        assert rows[("mni", str(old.resolve()))] == ["4", "0.400 (2.00x)", "0.200 (1.00x)", "0.600 (1.00x)",
+                                                      "2.200 (2.00x)"]
+        assert rows[("mni", stage_time.source_label(stage_time.ROOT))][:2] == ["4", "0.200"]
+
+    def test_a_failed_worker_writes_nothing(self, tmp_path, monkeypatch, capsys):
+        stage_time = script("stage_time")
+        real = subprocess.run
+        monkeypatch.setattr(stage_time.subprocess, "run", lambda command, **options: real(command, **options)
+                            if command[0] == "git" else subprocess.CompletedProcess(command, 1, stdout=""))
+        output = tmp_path / "stage_time.md"
+        assert stage_time.main(["--cases", "mni", "--rounds", "1", "--output", str(output)]) == 1
+        assert "on mni failed with exit code 1" in capsys.readouterr().err
+        assert not output.exists()
 
 
 def _speed_row(device: str, bandwidth: int) -> dict:
