@@ -28,7 +28,14 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import count_type, generated_by, publish, source_label  # noqa: E402  (the scripts' shared helpers)
+from markdown import (  # noqa: E402  (the scripts' shared helpers)
+    count_type,
+    generated_by,
+    publish,
+    source_label,
+    source_trees,
+    tree_environment,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("read", "preprocess", "solve", "refine", "resample", "total")
@@ -45,10 +52,9 @@ def _run(tree: Path, fixed: Path, moving: Path, extra: list[str], folder: Path) 
     from dpcn_med.cli import EXIT_LOW_CONFIDENCE, EXIT_OK
 
     output = folder / "out"
-    environment = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])}
     command = [sys.executable, "-m", "dpcn_med", "register", str(fixed), str(moving), "-o", str(output), "-q", *extra]
     started = time.perf_counter()
-    code = subprocess.run(command, env=environment, cwd=folder).returncode
+    code = subprocess.run(command, env=tree_environment(tree), cwd=folder).returncode
     wall = time.perf_counter() - started
     if code not in (EXIT_OK, EXIT_LOW_CONFIDENCE):  # low confidence is a result written like any other
         raise subprocess.CalledProcessError(code, command)
@@ -78,14 +84,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="option sets to time (a --compare tree must know their options)")
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "cli_time.md")
     args = parser.parse_args(argv)
-    for tree in args.compare:
-        if not (tree / "dpcn_med" / "__init__.py").is_file():
-            parser.error(f"--compare {tree}: not a dpcn_med source tree (no dpcn_med/__init__.py)")
+    trees = source_trees(parser, ROOT, args.compare)  # resolved: the runs' working folder is a temporary one
 
     from dpcn_med import io
     from dpcn_med.demo import demo_pair
 
-    trees = [ROOT, *(tree.resolve() for tree in args.compare)]  # the runs' working folder is a temporary one
     labels = [source_label(tree) for tree in trees]
     results: dict[tuple[str, str], list[dict[str, float]]] = {}
     with tempfile.TemporaryDirectory(prefix="dpcn-med-cli-time-") as name:

@@ -5,6 +5,7 @@ was made, print it, write it under docs/)."""
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import subprocess
 import sys
@@ -18,7 +19,7 @@ from dpcn_med.errors import InputError
 from dpcn_med.io import read_csv, write_text
 
 __all__ = ["count_type", "fraction_type", "generated_by", "publish", "read_unique_rows", "refuse_run_options",
-           "source_label"]
+           "source_label", "source_trees", "tree_environment"]
 
 
 def fraction_type(text: str) -> float:
@@ -83,3 +84,18 @@ def source_label(tree: Path) -> str:
 
     commit = git("rev-parse", "--short", "HEAD")
     return f"{commit}{'+' if git('status', '--porcelain', '--untracked-files=no') else ''}" if commit else str(tree)
+
+
+def source_trees(parser: argparse.ArgumentParser, root: Path, compare: list[Path]) -> list[Path]:
+    """``root`` and the ``--compare`` trees, resolved (runs may start in another folder); exits through ``parser``
+    (code 2) naming a compared tree that is not a dpcn_med source tree."""
+    for tree in compare:
+        if not (tree / "dpcn_med" / "__init__.py").is_file():
+            parser.error(f"--compare {tree}: not a dpcn_med source tree (no dpcn_med/__init__.py)")
+    return [root, *(tree.resolve() for tree in compare)]
+
+
+def tree_environment(tree: Path) -> dict[str, str]:
+    """This process's environment with ``tree`` first on ``PYTHONPATH``: a Python started with it imports that source
+    tree's dpcn_med."""
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])}

@@ -20,10 +20,18 @@ import os
 import statistics
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import count_type, generated_by, publish, source_label  # noqa: E402  (the scripts' shared helpers)
+from markdown import (  # noqa: E402  (the scripts' shared helpers)
+    count_type,
+    generated_by,
+    publish,
+    source_label,
+    source_trees,
+    tree_environment,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("preprocess", "solve", "refine", "whole")
@@ -31,8 +39,6 @@ STAGES = ("preprocess", "solve", "refine", "whole")
 
 def worker(case: str, poses: int, seed: int) -> dict[str, list[float]]:
     """Register ``poses`` poses of ``case`` in this process: each stage's seconds, one value per registration."""
-    import time
-
     import numpy as np
 
     from dpcn_med.benchmark import CASES, rotation_in_bin
@@ -88,20 +94,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.worker:
         print(json.dumps(worker(args.worker[0], int(args.worker[1]), int(args.worker[2]))))
         return 0
-    for tree in args.compare:
-        if not (tree / "dpcn_med" / "__init__.py").is_file():
-            parser.error(f"--compare {tree}: not a dpcn_med source tree (no dpcn_med/__init__.py)")
-    trees = [ROOT, *(tree.resolve() for tree in args.compare)]
+    trees = source_trees(parser, ROOT, args.compare)
     labels = [source_label(tree) for tree in trees]
     runs: dict[tuple[str, str], dict[str, list[float]]] = {}
     for round_ in range(args.rounds):
         for case in args.cases:
             for tree, label in zip(trees, labels, strict=True):
-                environment = {**os.environ,
-                               "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])}
                 # the worker's stderr passes through: its errors and warnings are the user's to see
                 done = subprocess.run([sys.executable, __file__, "--worker", case, str(args.poses), str(args.seed)],
-                                      stdout=subprocess.PIPE, text=True, env=environment, cwd=tree, check=False)
+                                      stdout=subprocess.PIPE, text=True, env=tree_environment(tree), cwd=tree,
+                                      check=False)
                 if done.returncode != 0:
                     print(f"stage_time.py: {label} on {case} failed with exit code {done.returncode} (its error is "
                           "above); nothing written", file=sys.stderr)

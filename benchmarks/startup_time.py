@@ -22,7 +22,13 @@ from pathlib import Path
 import SimpleITK as sitk
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from markdown import count_type, generated_by, publish, source_label  # noqa: E402  (the scripts' shared helpers)
+from markdown import (  # noqa: E402  (the scripts' shared helpers)
+    count_type,
+    generated_by,
+    publish,
+    source_label,
+    tree_environment,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -33,9 +39,8 @@ def _commands(image: Path) -> dict[str, list[str]]:
 
 def _run(tree: Path, arguments: list[str], folder: Path) -> float:
     """Wall seconds of ``python -m dpcn_med ARGUMENTS`` with ``tree`` first on the path."""
-    environment = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")])}
     started = time.perf_counter()
-    code = subprocess.run([sys.executable, "-m", "dpcn_med", *arguments], env=environment, cwd=folder,
+    code = subprocess.run([sys.executable, "-m", "dpcn_med", *arguments], env=tree_environment(tree), cwd=folder,
                           stdout=subprocess.DEVNULL).returncode
     if code != 0:
         raise SystemExit(f"dpcn-med {' '.join(arguments)} with {tree} exited {code}")
