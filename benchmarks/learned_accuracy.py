@@ -7,7 +7,7 @@ within 5 degrees and translation within 2 voxels (the learning issue's criterion
 docs/. ``--volumes training`` makes the pairs from the config's training volumes instead, with the same unseen
 contrasts and poses: a model that wins there and loses on held-out volumes has learned its training anatomy.
 ``--per-volume`` draws the pairs from each volume alone, a row per model and volume. ``--variants`` adds rows of the
-learning-free solver with settings changed (``SolverConfig`` fields), on the same pairs.
+learning-free solver with settings changed (``SolverConfig`` fields, several joined by ``;``), on the same pairs.
 
     python benchmarks/learned_accuracy.py --config training/configs/ct_mr.yaml --models none runs/ct_mr/model
 """
@@ -51,14 +51,17 @@ def errors(predict, pairs) -> tuple[list[float], list[float], list[float]]:
 
 
 def _variant(text: str) -> dict:
-    """``FIELD=VALUE`` as a solver option, the value a Python literal (``0``, ``(0.3,)``)."""
-    field, equals, value = text.partition("=")
-    if not equals or not field.strip():
-        raise argparse.ArgumentTypeError(f"{text!r}: expected FIELD=VALUE")
-    try:
-        return {field.strip(): ast.literal_eval(value.strip())}
-    except (ValueError, SyntaxError):
-        raise argparse.ArgumentTypeError(f"{text!r}: {value!r} is not a Python literal") from None
+    """``FIELD=VALUE[;FIELD=VALUE...]`` as solver options, each value a Python literal (``0``, ``(0.3,)``)."""
+    options = {}
+    for part in text.split(";"):
+        field, equals, value = part.partition("=")
+        if not equals or not field.strip():
+            raise argparse.ArgumentTypeError(f"{text!r}: expected FIELD=VALUE, several joined by ';'")
+        try:
+            options[field.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError):
+            raise argparse.ArgumentTypeError(f"{text!r}: {value!r} is not a Python literal") from None
+    return options
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,9 +77,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--per-volume", action="store_true",
                         help="--pairs pairs from each volume alone, one row per model and volume (which anatomy a "
                         "model fails on)")
-    parser.add_argument("--variants", nargs="+", default=[], type=_variant, metavar="FIELD=VALUE",
-                        help="more learning-free rows, each with one SolverConfig field changed (a Python literal), "
-                        "e.g. entropy_ranking_weight=0")
+    parser.add_argument("--variants", nargs="+", default=[], type=_variant, metavar="FIELD=VALUE[;FIELD=VALUE]",
+                        help="more learning-free rows, each with SolverConfig fields changed (Python literals, several "
+                        "joined by ';'), e.g. entropy_ranking_weight=0 'finalists=8;candidate_size=64'")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "learned_accuracy.md")
     args = parser.parse_args(argv)

@@ -36,6 +36,8 @@ class TestCounts:
         ("learned_accuracy", ["--config", "x.yaml", "--pairs", "1"], "argument --pairs: 1 is too few; give at least 2"),
         ("learned_accuracy", ["--config", "x.yaml", "--variants", "entropy"],
          "argument --variants: 'entropy': expected FIELD=VALUE"),
+        ("learned_accuracy", ["--config", "x.yaml", "--variants", "taper=0.2;"],
+         "argument --variants: 'taper=0.2;': expected FIELD=VALUE, several joined by ';'"),
         ("learned_accuracy", ["--config", "x.yaml", "--variants", "taper=x"],
          "argument --variants: 'taper=x': 'x' is not a Python literal"),
         ("learned_speed", ["--steps", "0"], "argument --steps: 0 is too few"),
@@ -411,12 +413,12 @@ class TestLearnedAccuracy:
             "data: {volumes: [mni], validation_volumes: [mni], pair: {max_shift_fraction: 0.1}}\n")
         output = tmp_path / "table.md"
         argv = ["--config", str(tmp_path / "tiny.yaml"), "--models", "none", "--pairs", "2", "--device", "cpu",
-                "--output", str(output), "--variants", "entropy_ranking_weight=0", "candidate_size=8"]
+                "--output", str(output), "--variants", "entropy_ranking_weight=0", "candidate_size=8;finalists=2"]
         assert script("learned_accuracy").main(argv) == 0
         labels = [line.split("|")[1].strip() for line in output.read_text().splitlines()
                   if line.startswith("| learning-free solver")]
         assert labels == ["learning-free solver", "learning-free solver, `entropy_ranking_weight=0`",
-                          "learning-free solver, `candidate_size=8`"]
+                          "learning-free solver, `candidate_size=8`, `finalists=2`"]
         # A setting the solver refuses stops the run with the solver's message, and no table is written.
         refused = tmp_path / "refused.md"
         with pytest.raises(InputError, match="entropy_ranking_weight is -1"):
