@@ -68,6 +68,11 @@ class SolverConfig:
             Near-duplicates are dropped within each source; all are ranked together, as ``entropy_ranking_weight``
             says. 0: none (why 8: docs/design_notes/solver.md).
         entropy_sigma: the entropy images' window, standard deviation in grid voxels.
+        extra_entropy_bins: 3-D only: further sources of candidates, each the entropy images of both volumes with
+            this many bins (2 to 256; the window of ``entropy_sigma``), through every correlation the volumes go
+            through. Near-duplicates are dropped within each source; they propose and take no part in the ranking.
+            Empty (the default): none, as the learning-free ranking gains nothing from them (measured:
+            docs/design_notes/solver.md).
         entropy_ranking_weight: 3-D only, with ``entropy_bins``: the candidates are ranked by their translation peak
             on the volumes plus this times their peak on the entropy images, each divided by its best over the
             volume's candidates (0: by the volumes' peak alone). Not where :func:`dpcn_med.solver.solve` ranks on
@@ -110,6 +115,7 @@ class SolverConfig:
     extra_degree_two_weights: tuple[float, ...] = (0.3,)
     entropy_bins: int = 8
     entropy_sigma: float = 1.0
+    extra_entropy_bins: tuple[int, ...] = ()
     entropy_ranking_weight: float = 1.0
     peaks: int = 4
     half_turns: bool = True
@@ -158,6 +164,10 @@ class SolverConfig:
         checked["entropy_bins"] = check_integer("entropy_bins", self.entropy_bins, minimum=0, maximum=256)
         if checked["entropy_bins"] == 1:
             raise InputError("entropy_bins is 1: one bin has no entropy; expected 0 (no entropy images) or 2 to 256")
+        checked["extra_entropy_bins"] = tuple(
+            check_integer(f"extra_entropy_bins[{index}]", bins, minimum=2, maximum=256)
+            for index, bins in enumerate(check_sequence("extra_entropy_bins", self.extra_entropy_bins,
+                                                        nonempty=False)))
         checked["entropy_sigma"] = check_real("entropy_sigma", self.entropy_sigma, minimum=0.0, above=True,
                                               maximum=16.0)
         checked["entropy_ranking_weight"] = check_real("entropy_ranking_weight", self.entropy_ranking_weight,

@@ -124,12 +124,15 @@ class _Spectra:
         weights: ``(2B,)`` its quadrature weights.
         degrees: the even degrees of the harmonic coefficients.
         spheres: ``(fixed, moving)`` normalised spheres ``(batch, 2B, 2B)`` per correlation, the primary band first:
-            the volumes' correlations, then, with ``entropy_bins``, as many of their entropy images in the same order.
+            the volumes' correlations, then, for each entropy source (``entropy_bins``, then each of
+            ``extra_entropy_bins``), as many of its entropy images in the same order.
         fixed_coeffs: ``(batch, L, 2M + 1)`` harmonic coefficients of each correlation's fixed sphere, weighted by
             degree.
         moving_coeffs: same for the moving spheres.
-        entropy: ``(fixed, moving)`` the volumes' entropy images ``(batch, N, N, N)`` (no graph), or ``None``
-            without ``entropy_bins``.
+        entropy: ``(fixed, moving)`` the volumes' entropy images ``(batch, N, N, N)`` of ``entropy_bins`` (no graph),
+            or ``None`` without it.
+        sources: how many sources the correlations come from: the volumes, then each entropy source; each has as
+            many correlations.
     """
 
     fixed_magnitude: Tensor
@@ -141,6 +144,7 @@ class _Spectra:
     fixed_coeffs: list[Tensor]
     moving_coeffs: list[Tensor]
     entropy: tuple[Tensor, Tensor] | None = None
+    sources: int = 1
 
 
 def _sphere(magnitude: Tensor, band: tuple[float, float], config: SolverConfig, directions: Tensor, weights: Tensor
@@ -157,26 +161,29 @@ def _sphere(magnitude: Tensor, band: tuple[float, float], config: SolverConfig, 
 def _spectra(fixed_volume: Tensor, moving_volume: Tensor, bandwidth: int, config: SolverConfig) -> _Spectra:
     """Steps 1-3a: magnitude spectra of ``(batch, N, N, N)`` volumes, their spheres per band, the spheres' harmonics
     (then, for each of ``config.extra_degree_two_weights``, the primary band's spheres and harmonics once more), and
-    with ``config.entropy_bins``, all of these again for the volumes' entropy images."""
+    all of these again for the volumes' entropy images of ``config.entropy_bins`` and of each of
+    ``config.extra_entropy_bins``."""
     directions = sphere_directions(bandwidth, device=fixed_volume.device, dtype=fixed_volume.dtype)
     weights = quadrature_weights(bandwidth, device=fixed_volume.device, dtype=fixed_volume.dtype)
     degrees = even_degrees(bandwidth)
     magnitudes = (magnitude_spectrum(fixed_volume, 3, config.taper), magnitude_spectrum(moving_volume, 3, config.taper))
     spheres, fixed_coeffs, moving_coeffs = _correlated(*magnitudes, config, directions, weights, degrees)
     entropy = None
-    if config.entropy_bins:  # why: docs/design_notes/solver.md
+    sources = [bins for bins in (config.entropy_bins, *config.extra_entropy_bins) if bins]
+    for bins in sources:  # why: docs/design_notes/solver.md
         # Proposals only, without a graph: no loss reaches them but through the choice, which is made under no_grad,
         # and their graph would double a training step's time and memory.
         with torch.no_grad():
-            entropy = tuple(entropy_image(volume, config.entropy_bins, config.entropy_sigma)
-                            for volume in (fixed_volume, moving_volume))
-            more = _correlated(*(magnitude_spectrum(image, 3, config.taper) for image in entropy), config,
+            images = tuple(entropy_image(volume, bins, config.entropy_sigma) for volume in (fixed_volume, moving_volume))
+            more = _correlated(*(magnitude_spectrum(image, 3, config.taper) for image in images), config,
                                directions, weights, degrees)
+        if entropy is None and bins == config.entropy_bins:
+            entropy = images
         spheres, fixed_coeffs, moving_coeffs = (first + second for first, second in
                                                 zip((spheres, fixed_coeffs, moving_coeffs), more))
     return _Spectra(fixed_magnitude=magnitudes[0], moving_magnitude=magnitudes[1], directions=directions,
                     weights=weights, degrees=degrees, spheres=spheres, fixed_coeffs=fixed_coeffs,
-                    moving_coeffs=moving_coeffs, entropy=entropy)
+                    moving_coeffs=moving_coeffs, entropy=entropy, sources=1 + len(sources))
 
 
 def _correlated(fixed_magnitude: Tensor, moving_magnitude: Tensor, config: SolverConfig, directions: Tensor,
@@ -345,11 +352,11 @@ def _resolve_candidates(fixed_volume: Tensor, moving_volume: Tensor, spectra: _S
         for (fixed_sphere, moving_sphere), rotations in zip(spectra.spheres, per_band))], 1)
     # Near-duplicates are dropped within each source: sphere scores of the volumes and of their entropy images do
     # not say which of two close candidates is the better one.
-    sizes = [rotations.shape[1] for rotations in per_band]  # the volumes' correlations, then as many of entropy
-    split = sum(sizes[:len(sizes) // 2]) if config.entropy_bins else candidates.shape[1]
+    per_source = len(per_band) // spectra.sources  # each source has as many correlations
+    sizes = [sum(rotations.shape[1] for rotations in per_band[start:start + per_source])
+             for start in range(0, len(per_band), per_source)]
     keep = torch.cat([deduplicate(part, score, math.radians(config.duplicate_degrees)) for part, score in
-                      zip(candidates.tensor_split([split], 1), sphere_score.tensor_split([split], 1))
-                      if part.shape[1]], 1)
+                      zip(candidates.split(sizes, 1), sphere_score.split(sizes, 1)) if part.shape[1]], 1)
     if mode == "similarity":
         scale = _scale_stage(spectra, candidates, config, temperatures).scale
     else:

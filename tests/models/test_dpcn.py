@@ -55,11 +55,13 @@ class TestModelConfig:
         # A config saved before the key existed: today's defaults.
         old = {k: v for k, v in TINY.to_json().items() if k != "solver"}
         assert ModelConfig.from_json(old).solver_config() == SolverConfig(bandwidth=8)
-        # A solver recorded before extra_degree_two_weights and entropy_bins existed ran without them, and still does.
+        # A solver recorded before extra_degree_two_weights and the entropy sources existed ran without them, and
+        # still does.
         recorded = TINY.to_json()
-        del recorded["solver"]["extra_degree_two_weights"], recorded["solver"]["entropy_bins"]
-        assert ModelConfig.from_json(recorded).solver_config() == SolverConfig(bandwidth=8, extra_degree_two_weights=(),
-                                                                               entropy_bins=0)
+        for key in ("extra_degree_two_weights", "entropy_bins", "extra_entropy_bins"):
+            del recorded["solver"][key]
+        assert ModelConfig.from_json(recorded).solver_config() == SolverConfig(
+            bandwidth=8, extra_degree_two_weights=(), entropy_bins=0, extra_entropy_bins=())
         assert ModelConfig.from_json(TINY.to_json()).solver_config() == SolverConfig(bandwidth=8)
         with pytest.raises(InputError, match="solver has unknown keys \\['band'\\]"):
             ModelConfig(solver={"band": (0.1, 0.5)})

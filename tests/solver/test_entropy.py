@@ -92,15 +92,50 @@ class TestEntropyCandidates:
         assert nearest[8] < 0.6 * nearest[0]
 
 
+class TestExtraEntropySources:
+    def test_each_source_adds_its_own_candidates(self):
+        """A second entropy source's candidates join the others', near-duplicates dropped within each source: the
+        candidates kept with 8 bins and an extra 16-bin source are those kept with either alone (each beside the
+        volumes'), and the volumes' once."""
+        labels = quantised_head(32)
+        pose = random_poses(1, 32, seed=4)[0]
+        fixed, moving = labels / (LEVELS - 1), pose.moving_from(REORDERED[labels.long()])
+
+        counts = []
+
+        def kept(**options):
+            """The plausible candidates (ranked), after counting every one left by the near-duplicate drop."""
+            result = solve(fixed, moving, "rigid", **options)
+            counts.append(int(result.candidates[0]))
+            return result.ranking.rotation[0][result.ranking.score[0] > float("-inf")]
+
+        volumes, eight, sixteen = kept(entropy_bins=0), kept(entropy_bins=8), kept(entropy_bins=16)
+        both = kept(entropy_bins=8, extra_entropy_bins=(16,))
+        assert counts[0] < counts[1] and counts[0] < counts[2]
+        assert counts[3] == counts[1] + counts[2] - counts[0]
+        assert volumes.shape[0] < eight.shape[0] and volumes.shape[0] < sixteen.shape[0]
+        assert both.shape[0] == eight.shape[0] + sixteen.shape[0] - volumes.shape[0]
+
+        def found(rotation, among):
+            return bool(((among - rotation).flatten(1).abs().amax(-1) < 1e-5).any())
+
+        assert all(found(rotation, both) for rotation in torch.cat([eight, sixteen]))
+        # The extra source alone, without the ranking's entropy images: the volumes' and the 16-bin images'.
+        alone = kept(entropy_bins=0, extra_entropy_bins=(16,))
+        assert counts[4] == counts[2]
+        assert alone.shape[0] == sixteen.shape[0] and all(found(rotation, alone) for rotation in sixteen)
+
+
 class TestEntropyRanking:
-    @pytest.mark.parametrize("weight", [0.0, 1.0, 2.5])
-    def test_the_finalists_rank_by_both_relative_peaks(self, weight):
-        """The finalists' scores are their translation peaks on the volumes and on the entropy images, each divided
-        by its best among them, summed with the weight: recomputed here from :func:`candidate_scores`."""
+    @pytest.mark.parametrize(("weight", "extra"), [(0.0, ()), (1.0, ()), (2.5, ()), (1.0, (16,))])
+    def test_the_finalists_rank_by_both_relative_peaks(self, weight, extra):
+        """The finalists' scores are their translation peaks on the volumes and on the entropy images of
+        ``entropy_bins`` (not of ``extra_entropy_bins``, which only propose), each divided by its best among them,
+        summed with the weight: recomputed here from :func:`candidate_scores`."""
         labels = quantised_head(32)
         pose = random_poses(1, 32, seed=3)[0]
         fixed, moving = labels / (LEVELS - 1), pose.moving_from(REORDERED[labels.long()])
-        config = SolverConfig(entropy_ranking_weight=weight)
+        config = SolverConfig(entropy_ranking_weight=weight, extra_entropy_bins=extra)
         ranking = solve(fixed, moving, "rigid", config=config).ranking
         count = min(config.finalists, int((ranking.score[0] > float("-inf")).sum()))
         assert count >= 2

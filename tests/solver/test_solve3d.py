@@ -119,6 +119,8 @@ class TestSolverConfig:
         ("extra_degree_two_weights", 0.3, r"extra_degree_two_weights is 0\.3 \(float\); expected a tuple"),
         ("entropy_bins", 1, r"entropy_bins is 1: one bin has no entropy; expected 0"),
         ("entropy_bins", -1, r"entropy_bins is -1; expected an integer >= 0 and <= 256"),
+        ("extra_entropy_bins", (16, 1), r"extra_entropy_bins\[1\] is 1; expected an integer >= 2 and <= 256"),
+        ("extra_entropy_bins", 16, r"extra_entropy_bins is 16 \(int\); expected a tuple"),
         ("entropy_sigma", 0.0, r"entropy_sigma is 0\.0; expected a finite number > 0 and <= 16"),
         ("entropy_ranking_weight", -0.5, r"entropy_ranking_weight is -0\.5; expected a finite number >= 0 and <= 16"),
         ("sphere_margin", float("inf"), r"sphere_margin is inf; expected a finite number >= 0"),
