@@ -256,39 +256,39 @@ def _steps(run: _Run, step: int) -> tuple[int, float]:
     amp = config.optimiser.amp and process.device.type == "cuda"
     from tqdm import tqdm
 
-    bar = tqdm(total=config.optimiser.steps, initial=step, disable=not process.main, desc="training",
-               dynamic_ncols=True)
-    started, pairs_since, clock = time.perf_counter(), 0, time.perf_counter()
-    skipped, skipped_in_a_row = 0, 0
-    while step < config.optimiser.steps:
-        rate = learning_rate(step, config)
-        for group in run.optimiser.param_groups:
-            group["lr"] = rate
-        batch = _batch(run, step)
-        terms, finite = _descend(run, *batch, amp, pretraining=step < config.pretrain.steps)
-        if finite:
-            skipped_in_a_row = 0
-        else:
-            skipped += 1
-            skipped_in_a_row += 1
-            if skipped_in_a_row == MAX_SKIPPED_IN_A_ROW:
-                raise InputError(f"training: {MAX_SKIPPED_IN_A_ROW} steps in a row gave non-finite gradients (at "
-                                 f"step {step + 1}); the training has diverged: lower optimiser.learning_rate, or "
-                                 "check the training volumes for empty or constant ones")
-        step += 1
-        if step == config.pretrain.steps:
-            _end_pretraining(run, batch, bar)
-        pairs_since += config.optimiser.batch_size * process.world_size
-        bar.update(1)
-        if step % config.log_every == 0 or step == config.optimiser.steps:
-            now = time.perf_counter()
-            row = _train_row(run, step, rate, terms, skipped, pairs_since / (now - clock))
-            pairs_since, clock, skipped = 0, now, 0
-            if process.main:
-                run.rows.append(row)
-                bar.set_postfix(loss=f"{row['total']:.3g}")
-        _validate_and_save(run, step, bar)
-    bar.close()
+    # Closed on an error too: an open bar wrote its last line after the error's message, at the interpreter's exit.
+    with tqdm(total=config.optimiser.steps, initial=step, disable=not process.main, desc="training",
+              dynamic_ncols=True) as bar:
+        started, pairs_since, clock = time.perf_counter(), 0, time.perf_counter()
+        skipped, skipped_in_a_row = 0, 0
+        while step < config.optimiser.steps:
+            rate = learning_rate(step, config)
+            for group in run.optimiser.param_groups:
+                group["lr"] = rate
+            batch = _batch(run, step)
+            terms, finite = _descend(run, *batch, amp, pretraining=step < config.pretrain.steps)
+            if finite:
+                skipped_in_a_row = 0
+            else:
+                skipped += 1
+                skipped_in_a_row += 1
+                if skipped_in_a_row == MAX_SKIPPED_IN_A_ROW:
+                    raise InputError(f"training: {MAX_SKIPPED_IN_A_ROW} steps in a row gave non-finite gradients (at "
+                                     f"step {step + 1}); the training has diverged: lower optimiser.learning_rate, or "
+                                     "check the training volumes for empty or constant ones")
+            step += 1
+            if step == config.pretrain.steps:
+                _end_pretraining(run, batch, bar)
+            pairs_since += config.optimiser.batch_size * process.world_size
+            bar.update(1)
+            if step % config.log_every == 0 or step == config.optimiser.steps:
+                now = time.perf_counter()
+                row = _train_row(run, step, rate, terms, skipped, pairs_since / (now - clock))
+                pairs_since, clock, skipped = 0, now, 0
+                if process.main:
+                    run.rows.append(row)
+                    bar.set_postfix(loss=f"{row['total']:.3g}")
+            _validate_and_save(run, step, bar)
     return step, started
 
 

@@ -121,8 +121,14 @@ class TestTrain:
         losses = loop.pose_loss
         monkeypatch.setattr(loop, "pose_loss", lambda *a: {**losses(*a), "total": losses(*a)["total"] * math.nan})
         monkeypatch.setattr(loop, "MAX_SKIPPED_IN_A_ROW", 3)
-        with pytest.raises(InputError, match=r"^training: 3 steps in a row gave non-finite gradients \(at step 3\)"):
+        with pytest.raises(InputError, match=r"^training: 3 steps in a row gave non-finite gradients \(at step 3\)"
+                           ) as raised:
             train(tiny_config(tmp_path))
+        # The progress bar is closed with the error, while its traceback (which the command line reports from) still
+        # holds the training's frames: an open bar wrote its last line after the error's message, at exit.
+        from tqdm import tqdm
+        assert raised.tb is not None
+        assert not [bar for bar in list(tqdm._instances) if bar.desc.startswith("training")]
 
     def test_real_pairs_from_folders_train_and_validate(self, tmp_path, monkeypatch):
         """Folders of registered pairs (.tfm ground truth) feed every step here and are scored at validation."""
