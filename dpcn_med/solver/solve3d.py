@@ -177,7 +177,7 @@ def _spectra(fixed_volume: Tensor, moving_volume: Tensor, bandwidth: int, config
             images = tuple(entropy_image(volume, bins, config.entropy_sigma) for volume in (fixed_volume, moving_volume))
             more = _correlated(*(magnitude_spectrum(image, 3, config.taper) for image in images), config,
                                directions, weights, degrees)
-        if entropy is None and bins == config.entropy_bins:
+        if entropy is None and config.entropy_bins:  # the first source ranks beside the volumes
             entropy = images
         spheres, fixed_coeffs, moving_coeffs = (first + second for first, second in
                                                 zip((spheres, fixed_coeffs, moving_coeffs), more))
@@ -356,7 +356,7 @@ def _resolve_candidates(fixed_volume: Tensor, moving_volume: Tensor, spectra: _S
     sizes = [sum(rotations.shape[1] for rotations in per_band[start:start + per_source])
              for start in range(0, len(per_band), per_source)]
     keep = torch.cat([deduplicate(part, score, math.radians(config.duplicate_degrees)) for part, score in
-                      zip(candidates.split(sizes, 1), sphere_score.split(sizes, 1)) if part.shape[1]], 1)
+                      zip(candidates.split(sizes, 1), sphere_score.split(sizes, 1))], 1)
     if mode == "similarity":
         scale = _scale_stage(spectra, candidates, config, temperatures).scale
     else:
