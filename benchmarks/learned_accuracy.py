@@ -7,7 +7,8 @@ within 5 degrees and translation within 2 voxels (the learning issue's criterion
 docs/. ``--volumes training`` makes the pairs from the config's training volumes instead, with the same unseen
 contrasts and poses: a model that wins there and loses on held-out volumes has learned its training anatomy.
 ``--per-volume`` draws the pairs from each volume alone, a row per model and volume. ``--variants`` adds rows of the
-learning-free solver with settings changed (``SolverConfig`` fields, several joined by ``;``), on the same pairs.
+learning-free solver with settings changed (``SolverConfig`` fields, several joined by ``;``), on the same pairs;
+``--models`` with no value leaves only those rows.
 
     python benchmarks/learned_accuracy.py --config training/configs/ct_mr.yaml --models none runs/ct_mr/model
 """
@@ -67,7 +68,8 @@ def _variant(text: str) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, required=True, help="training config: its held-out volumes and pairs")
-    parser.add_argument("--models", nargs="+", default=["none"], help="'none' (learning-free) and/or model paths")
+    parser.add_argument("--models", nargs="*", default=["none"], help="'none' (learning-free) and/or model paths; "
+                        "none at all (the flag alone) leaves only the --variants rows")
     parser.add_argument("--pairs", type=count_type(2), default=200, help="held-out pairs (at least 2: the table gives "
                         "a 90th percentile)")
     parser.add_argument("--seed", type=int, default=2025, help="not the config's validation seed: unseen contrasts")
@@ -83,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--output", type=Path, default=ROOT / "docs" / "benchmarks" / "learned_accuracy.md")
     args = parser.parse_args(argv)
+    if not args.models and not args.variants:
+        parser.error("nothing to score: give --models, --variants or both")
     config = load_config(args.config)
     device = torch.device(args.device)
     bandwidth, mode = config.model.bandwidth, config.data.pair.mode

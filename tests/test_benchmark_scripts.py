@@ -40,6 +40,7 @@ class TestCounts:
          "argument --variants: 'taper=0.2;': expected FIELD=VALUE, several joined by ';'"),
         ("learned_accuracy", ["--config", "x.yaml", "--variants", "taper=x"],
          "argument --variants: 'taper=x': 'x' is not a Python literal"),
+        ("learned_accuracy", ["--config", "x.yaml", "--models"], "nothing to score: give --models, --variants or both"),
         ("learned_speed", ["--steps", "0"], "argument --steps: 0 is too few"),
         ("learned_speed", ["--batches", "4", "0"], "argument --batches: 0 is too few"),
         ("register_roundtrip", ["--trials", "0"], "argument --trials: 0 is too few"),
@@ -419,6 +420,12 @@ class TestLearnedAccuracy:
                   if line.startswith("| learning-free solver")]
         assert labels == ["learning-free solver", "learning-free solver, `entropy_ranking_weight=0`",
                           "learning-free solver, `candidate_size=8`, `finalists=2`"]
+        # --models alone (no model) leaves the variants' rows only.
+        only = tmp_path / "only.md"
+        assert script("learned_accuracy").main([*argv[:2], "--models", *argv[4:9], str(only), "--variants",
+                                                "entropy_ranking_weight=0"]) == 0
+        assert [line.split("|")[1].strip() for line in only.read_text().splitlines()
+                if line.startswith("| learning-free solver")] == ["learning-free solver, `entropy_ranking_weight=0`"]
         # A setting the solver refuses stops the run with the solver's message, and no table is written.
         refused = tmp_path / "refused.md"
         with pytest.raises(InputError, match="entropy_ranking_weight is -1"):
