@@ -66,6 +66,9 @@ class Refinement:
         shrink_factors: image pyramid, coarse to fine (integers >= 1).
         smoothing_mm: Gaussian sigma per level, mm (>= 0, one per shrink factor).
         samples: random metric samples per level (capped at every voxel), at least 1000.
+        coarse_samples: at least 1000, or ``None`` for ``samples``: at most this many of them on the coarsest level of
+            :func:`refine_candidates`, where every start runs, when there are several levels (the finer levels and
+            :func:`refine_transform` take ``samples``).
         histogram_bins: Mattes histogram bins, at least 8.
         iterations: optimiser iterations per level, at least 1.
         max_step_mm: largest first step of the regular-step gradient descent at the coarsest level, as a physical
@@ -97,6 +100,7 @@ class Refinement:
     shrink_factors: tuple[int, ...] = (4, 2, 1)
     smoothing_mm: tuple[float, ...] = (2.0, 1.0, 0.0)
     samples: int = 30_000
+    coarse_samples: int | None = 10_000
     histogram_bins: int = 32
     iterations: int = 100
     max_step_mm: float | None = None
@@ -119,6 +123,8 @@ class Refinement:
             "smoothing_mm": tuple(check_real(f"smoothing_mm[{level}]", sigma, minimum=0)
                                   for level, sigma in enumerate(smoothing)),
             "samples": check_integer("samples", self.samples, minimum=1000),
+            "coarse_samples": None if self.coarse_samples is None else check_integer(
+                "coarse_samples", self.coarse_samples, minimum=1000),
             "histogram_bins": check_integer("histogram_bins", self.histogram_bins, minimum=8),
             "iterations": check_integer("iterations", self.iterations, minimum=1),
             "max_step_mm": None if self.max_step_mm is None else check_real("max_step_mm", self.max_step_mm,
@@ -289,15 +295,19 @@ def search_levels(fixed: sitk.Image, moving: sitk.Image, masks: Masks, centre: n
                   settings: Refinement = Refinement(), device: torch.device = CPU) -> list[Level]:
     """The search's levels, coarse to fine, on ``device``: both images smoothed (``settings.smoothing_mm``) and
     shrunk (``settings.shrink_factors``, :func:`level_factors`) once for every start, and up to ``settings.samples``
-    fixed samples of each inside the fixed mask, drawn with ``settings.seed``."""
+    fixed samples of each inside the fixed mask (on the coarsest of several levels at most
+    ``settings.coarse_samples``), drawn with ``settings.seed``."""
     fixed_volume, moving_volume = volume(fixed, device), volume(moving, device)
     moving_mask = None if masks[1] is None else volume(masks[1], device)
     generator = torch.Generator().manual_seed(settings.seed)
     levels = []
-    for factor, sigma in zip(settings.shrink_factors, settings.smoothing_mm, strict=True):
+    counts = [settings.samples] * len(settings.shrink_factors)
+    if len(counts) > 1 and settings.coarse_samples is not None:
+        counts[0] = min(settings.coarse_samples, settings.samples)
+    for factor, sigma, count in zip(settings.shrink_factors, settings.smoothing_mm, counts, strict=True):
         fixed_level = pyramid_level(fixed_volume, level_factors(fixed.GetSize(), factor), sigma)
         moving_level = pyramid_level(moving_volume, level_factors(moving.GetSize(), factor), sigma)
-        samples = fixed_samples(fixed_level, masks[0], settings.samples, settings.histogram_bins, centre, generator)
+        samples = fixed_samples(fixed_level, masks[0], count, settings.histogram_bins, centre, generator)
         levels.append(Level(samples=samples, moving=with_gradient(moving_level), moving_mask=moving_mask,
                             bins=settings.histogram_bins, moving_range=(float(moving_level.values.min()),
                                                                         float(moving_level.values.max()))))

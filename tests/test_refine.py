@@ -72,6 +72,21 @@ class TestCandidates:
         assert first_step_mm(Refinement(), levels[0].samples.spacing) == 4.0
         assert target_registration_error(result.fixed_to_moving, truth, foreground_corners(fixed)) < 0.5
 
+    @pytest.mark.parametrize(("changes", "counts"), [
+        ({}, [2000, 4000, 4000]),
+        ({"coarse_samples": None}, [4000, 4000, 4000]),
+        ({"coarse_samples": 8000}, [4000, 4000, 4000]),  # never more than samples
+        ({"shrink_factors": (1,), "smoothing_mm": (0.0,)}, [4000]),  # one level is the finest: samples
+    ])
+    def test_the_coarsest_level_takes_coarse_samples(self, changes, counts):
+        """Every start runs the coarsest level, so it samples less (``Refinement.coarse_samples``); the others, and a
+        single level, take ``samples``."""
+        image = sitk.GaussianSource(sitk.sitkFloat32, [64, 64, 64], [12.0] * 3, [32.0] * 3, 100.0)
+        centre = np.array(image.TransformContinuousIndexToPhysicalPoint([31.5] * 3))
+        settings = Refinement(**{"samples": 4000, "coarse_samples": 2000, **changes})
+        levels = search_levels(image, image, (None, None), centre, settings)
+        assert [level.samples.count for level in levels] == counts
+
     def test_starts_that_reach_one_pose_are_one_survivor(self):
         """Two starts within a voxel of each other count once, under the lower start index (the solver's ranking,
         the stored pose last), with the better metric and its transform; a pose two voxels away and a lost start stay
@@ -120,6 +135,7 @@ class TestRefinementSettings:
         ({"histogram_bins": 3}, r"histogram_bins is 3; expected an integer >= 8$"),
         ({"histogram_bins": 32.0}, r"histogram_bins is 32\.0 \(float\); expected an integer >= 8$"),
         ({"samples": 100}, r"samples is 100; expected an integer >= 1000$"),
+        ({"coarse_samples": 999}, r"coarse_samples is 999; expected an integer >= 1000$"),
         ({"iterations": 0}, r"iterations is 0; expected an integer >= 1$"),
         ({"starts": 0}, r"starts is 0; expected an integer >= 1$"),
         ({"mask_margin_voxels": -1}, r"mask_margin_voxels is -1; expected an integer >= 0$"),
