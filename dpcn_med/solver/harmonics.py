@@ -10,26 +10,17 @@ from __future__ import annotations
 import functools
 import math
 
-import numpy as np
-import scipy.special
 import torch
 from torch import Tensor
 
 from dpcn_med.solver.sphere import quadrature_weights, sphere_angles
-
-
-def even_degrees(bandwidth: int) -> tuple[int, ...]:
-    """Degrees the rotation stage uses: even ``l`` from 2 to ``B - 1``.
-
-    ``|FFT|`` is even, so its sphere carries only even degrees; degree 0 is the mean, which dominates the correlation
-    and carries no rotation.
-    """
-    return tuple(range(2, bandwidth, 2))
+from dpcn_med.solver.wigner import legendre
 
 
 @functools.lru_cache(maxsize=16)
 def legendre_table(bandwidth: int, degrees: tuple[int, ...], device: torch.device, dtype: torch.dtype) -> Tensor:
-    """Normalised associated Legendre functions on the grid: ``Y_l^m(theta_j, 0)``.
+    """Normalised associated Legendre functions on the grid: ``Y_l^m(theta_j, 0)``
+    (:func:`dpcn_med.solver.wigner.legendre`).
 
     Args:
         bandwidth: ``B``; the grid has ``2B`` colatitudes.
@@ -40,12 +31,8 @@ def legendre_table(bandwidth: int, degrees: tuple[int, ...], device: torch.devic
     Returns:
         ``(L, 2M + 1, 2B)`` real, ``M = max(degrees)``, zero where ``|m| > l``.
     """
-    top = max(degrees)
     theta, _ = sphere_angles(bandwidth, dtype=torch.float64)
-    l_grid, m_grid = np.meshgrid(np.array(degrees), np.arange(-top, top + 1), indexing="ij")
-    table = scipy.special.sph_legendre_p(l_grid[..., None], m_grid[..., None], theta.numpy()[None, None, :])[0]
-    table = np.where(np.abs(m_grid)[..., None] <= l_grid[..., None], table, 0.0)
-    return torch.from_numpy(table).to(device=device, dtype=dtype)
+    return legendre(degrees, theta).to(device=device, dtype=dtype)
 
 
 def order_columns(top: int, columns: int, device: torch.device) -> Tensor:

@@ -102,7 +102,7 @@ def so3_correlation(moving_coeffs: Tensor, fixed_coeffs: Tensor, bandwidth: int)
 
     Args:
         moving_coeffs: ``(batch, L, 2M + 1)`` complex SH coefficients of the moving sphere, even degrees 2..B-1 as
-            :func:`dpcn_med.solver.harmonics.even_degrees`.
+            :func:`dpcn_med.solver.sphere.even_degrees`.
         fixed_coeffs: same for the fixed sphere.
         bandwidth: ``B``.
 

@@ -13,7 +13,7 @@ from dpcn_med.errors import InputError
 from dpcn_med.geometry import geodesic_distance, half_turns, warp
 from dpcn_med.solver.config import SolverConfig, StageTemperatures, override
 from dpcn_med.solver.entropy import entropy_image
-from dpcn_med.solver.harmonics import even_degrees, isht, sht
+from dpcn_med.solver.harmonics import isht, sht
 from dpcn_med.solver.phase_correlation import phase_correlation
 from dpcn_med.solver.scale import ScaleEstimate, log_polar_scale
 from dpcn_med.solver.so3 import (
@@ -26,7 +26,14 @@ from dpcn_med.solver.so3 import (
     sphere_correlation,
 )
 from dpcn_med.solver.spectrum import apodize, magnitude_spectrum
-from dpcn_med.solver.sphere import log_radii, normalize_sphere, quadrature_weights, sphere_directions, to_sphere
+from dpcn_med.solver.sphere import (
+    even_degrees,
+    log_radii,
+    normalize_sphere,
+    quadrature_weights,
+    sphere_directions,
+    to_sphere,
+)
 from dpcn_med.solver.timing import StageClock
 from dpcn_med.solver.translation import TranslationEstimate, phase_translation
 from dpcn_med.solver.validation import check_bandwidth, check_grids, check_mode

@@ -19,6 +19,15 @@ from dpcn_med.geometry import sample
 LOG_FLOOR = 1e-3
 
 
+def even_degrees(bandwidth: int) -> tuple[int, ...]:
+    """Degrees the rotation stage uses: even ``l`` from 2 to ``B - 1``.
+
+    ``|FFT|`` is even, so its sphere carries only even degrees; degree 0 is the mean, which dominates the correlation
+    and carries no rotation.
+    """
+    return tuple(range(2, bandwidth, 2))
+
+
 def soft_colatitude(index: Tensor, bandwidth: int) -> Tensor:
     """``pi (2j + 1) / 4B``: the SOFT colatitudes ``theta_j``, which are also the Euler grid's betas (any ``j``, even
     fractional)."""

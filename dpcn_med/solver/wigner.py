@@ -9,23 +9,31 @@ docs/design_notes/solver.md).
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Iterator
 
 import torch
 from torch import Tensor
 
-from dpcn_med.solver.harmonics import even_degrees
-from dpcn_med.solver.sphere import soft_colatitude
+from dpcn_med.solver.sphere import even_degrees, soft_colatitude
 
 
-def _seeds(top: int, betas: Tensor) -> Tensor:
+def _orders(top: int, columns: tuple[int, ...] | None, device: torch.device) -> tuple[Tensor, Tensor]:
+    """``(m, n)`` float64 grids: rows ``m = -top..top``, ``(2 top + 1, 1)``; columns ``n`` (default ``-top..top``),
+    ``(1, N)``."""
+    orders = torch.arange(-top, top + 1, device=device, dtype=torch.float64)
+    n = orders if columns is None else torch.tensor(columns, device=device, dtype=torch.float64)
+    return orders[:, None], n[None, :]
+
+
+def _seeds(top: int, betas: Tensor, columns: tuple[int, ...] | None = None) -> Tensor:
     """``d^l0_mn(beta)`` at ``l0 = max(|m|, |n|)``, the first degree where each ``(m, n)`` exists.
 
     Closed forms from Wigner's formula, evaluated in log space so that powers of ``sin(beta / 2)`` underflow to zero
-    instead of overflowing the binomial factor. Returns ``(K, 2 top + 1, 2 top + 1)`` float64.
+    instead of overflowing the binomial factor. Returns ``(K, 2 top + 1, N)`` float64, the columns of
+    :func:`_orders`.
     """
-    orders = torch.arange(-top, top + 1, device=betas.device, dtype=torch.float64)
-    m, n = orders[:, None], orders[None, :]
+    m, n = _orders(top, columns, betas.device)
     l0 = torch.maximum(m.abs(), n.abs())
     row_is_edge = m.abs() >= n.abs()  # cases m = +-l0, else n = +-l0
     other = torch.where(row_is_edge, n, m)
@@ -42,8 +50,9 @@ def _seeds(top: int, betas: Tensor) -> Tensor:
     return sign * torch.exp(log_value)
 
 
-def _recurrence(top: int, betas: Tensor) -> Iterator[tuple[int, Tensor]]:
-    """Yield ``(l, d^l)`` for ``l = 0..top``, each ``(K, 2 top + 1, 2 top + 1)`` float64 (zero where ``|m|, |n| > l``).
+def _recurrence(top: int, betas: Tensor, columns: tuple[int, ...] | None = None) -> Iterator[tuple[int, Tensor]]:
+    """Yield ``(l, d^l)`` for ``l = 0..top``, each ``(K, 2 top + 1, N)`` float64 (zero where ``|m|, |n| > l``), rows
+    ``m = -top..top`` and columns ``n`` in ``columns`` (default ``-top..top``, ``N = 2 top + 1``).
 
     ``d^(J+1) = a_J (cos beta - m n / (J (J + 1))) d^J - b_J d^(J-1)`` with
     ``a_J = (J + 1)(2J + 1) / sqrt(((J + 1)^2 - m^2)((J + 1)^2 - n^2))`` and
@@ -52,10 +61,9 @@ def _recurrence(top: int, betas: Tensor) -> Iterator[tuple[int, Tensor]]:
     References:
         Kostelec and Rockmore, "FFTs on the rotation group", J. Fourier Anal. Appl. 2008, eq. 4.5.
     """
-    orders = torch.arange(-top, top + 1, device=betas.device, dtype=torch.float64)
-    m, n = orders[:, None], orders[None, :]
+    m, n = _orders(top, columns, betas.device)
     l0 = torch.maximum(m.abs(), n.abs())
-    seeds = _seeds(top, betas)
+    seeds = _seeds(top, betas, columns)
     cos_beta = torch.cos(betas.to(torch.float64))[:, None, None]
     previous = torch.zeros_like(seeds)
     current = torch.zeros_like(seeds)
@@ -93,6 +101,30 @@ def wigner_d(degrees: tuple[int, ...], betas: Tensor) -> Tensor:
     for degree, values in _recurrence(top, betas):
         if degree in wanted:
             table[wanted[degree]] = values
+    return table
+
+
+def legendre(degrees: tuple[int, ...], betas: Tensor) -> Tensor:
+    """Orthonormal associated Legendre functions with the Condon-Shortley phase: ``Y_l^m(beta, 0)``, equal to
+    ``scipy.special.sph_legendre_p(l, m, beta)``, from ``Y_l^m(beta, 0) = sqrt((2l + 1) / (4 pi)) d^l_m0(beta)``.
+
+    Why not scipy: importing ``scipy.special`` costs more than the table at the solver's bandwidths, and the
+    recurrence is already here (docs/design_notes/solver.md, ``dpcn_med.solver.wigner.legendre``).
+
+    Args:
+        degrees: the ``L`` degrees wanted.
+        betas: ``(K,)`` colatitudes in radians, strictly inside ``(0, pi)``.
+
+    Returns:
+        ``(L, 2M + 1, K)`` float64, ``M = max(degrees)``, entry ``[i, m + M, k]`` for ``l = degrees[i]``; zero where
+        ``|m| > l``.
+    """
+    wanted = {degree: index for index, degree in enumerate(degrees)}
+    top = max(degrees)
+    table = torch.zeros(len(degrees), 2 * top + 1, betas.shape[0], device=betas.device, dtype=torch.float64)
+    for degree, values in _recurrence(top, betas, columns=(0,)):
+        if degree in wanted:
+            table[wanted[degree]] = values[..., 0].T * math.sqrt((2 * degree + 1) / (4 * math.pi))
     return table
 
 

@@ -7,8 +7,8 @@ import pytest
 import scipy.special
 import torch
 
-from dpcn_med.solver.harmonics import even_degrees, isht, legendre_table, sht
-from dpcn_med.solver.sphere import sphere_angles
+from dpcn_med.solver.harmonics import isht, legendre_table, sht
+from dpcn_med.solver.sphere import even_degrees, sphere_angles
 
 
 class TestLegendreTable:

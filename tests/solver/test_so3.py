@@ -14,7 +14,7 @@ from dpcn_med.geometry import (
     matrix_to_euler_zyz,
     random_rotation,
 )
-from dpcn_med.solver.harmonics import even_degrees, isht, sht
+from dpcn_med.solver.harmonics import isht, sht
 from dpcn_med.solver.so3 import (
     deduplicate,
     euler_grid,
@@ -26,7 +26,7 @@ from dpcn_med.solver.so3 import (
     soft_argmax_so3,
     sphere_correlation,
 )
-from dpcn_med.solver.sphere import quadrature_weights, sphere_directions
+from dpcn_med.solver.sphere import even_degrees, quadrature_weights, sphere_directions
 from dpcn_med.solver.wigner import wigner_d
 from tests.conftest import TOLERANCE
 from tests.solver.test_harmonics import _random_real_coefficients

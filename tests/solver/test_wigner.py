@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.linalg
+import scipy.special
 import torch
 
-from dpcn_med.solver.harmonics import even_degrees
-from dpcn_med.solver.wigner import correlation_table, wigner_d
+from dpcn_med.solver.sphere import even_degrees
+from dpcn_med.solver.wigner import correlation_table, legendre, wigner_d
 
 
 def _j_y(degree: int) -> np.ndarray:
@@ -52,6 +53,27 @@ class TestWignerD:
         for i, degree in enumerate(degrees):
             sign = (-1.0) ** (degree + orders)[:, None]
             torch.testing.assert_close(high[i], sign * low[i].flip(-1), atol=1e-12, rtol=0)
+
+
+class TestLegendre:
+    def test_equals_scipy_sph_legendre_p_up_to_degree_127(self):
+        betas = torch.tensor([0.003, 0.4, 1.5707, 2.9, 3.1385], dtype=torch.float64)
+        degrees = (0, 1, 2, 7, 30, 64, 127)
+        table = legendre(degrees, betas).numpy()
+        top = max(degrees)
+        for i, degree in enumerate(degrees):
+            orders = np.arange(-top, top + 1)
+            reference = scipy.special.sph_legendre_p(degree, orders[:, None], betas.numpy()[None, :])[0]
+            reference[np.abs(orders) > degree] = 0.0
+            np.testing.assert_allclose(table[i], reference, atol=1e-11, err_msg=f"degree {degree}")
+
+    def test_columns_of_the_recurrence_are_those_of_the_full_table(self):
+        betas = torch.tensor([0.7, 2.0], dtype=torch.float64)
+        degrees = (3, 8)
+        full = wigner_d(degrees, betas)[..., 8]  # n = 0 of the full (m, n) matrices: (L, K, 2M + 1)
+        scale = torch.sqrt((2 * torch.tensor(degrees, dtype=torch.float64) + 1) / (4 * torch.pi))
+        torch.testing.assert_close(legendre(degrees, betas), (full * scale[:, None, None]).transpose(1, 2),
+                                   atol=1e-14, rtol=0)
 
 
 class TestCorrelationTable:
