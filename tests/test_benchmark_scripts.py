@@ -219,6 +219,21 @@ class TestCliTime:
         totals = {cells[0].strip(): cells[9].strip() for cells in rows}
         assert totals == {str(tmp_path / "main"): "1.00", str(old.resolve()): "2.00"}
 
+    def test_each_tree_runs_from_bytecode(self, tmp_path, monkeypatch):
+        """Compiled first, whatever PYTHONDONTWRITEBYTECODE says: no tree pays for compiling in its timed runs."""
+        cli_time = script("cli_time")
+        monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+        monkeypatch.setattr(cli_time, "ROOT", _fake_tree(tmp_path / "main", 1.0))
+        old = _fake_tree(tmp_path / "old", 2.0)
+        for name in ("fixed.nii.gz", "moving.nii.gz"):
+            (tmp_path / name).write_bytes(b"")
+        assert cli_time.main(["--compare", str(old), "--pair", str(tmp_path / "fixed.nii.gz"),
+                              str(tmp_path / "moving.nii.gz"), "--repeats", "1", "--variants", "no-refine",
+                              "--output", str(tmp_path / "cli_time.md")]) == 0
+        for tree in (tmp_path / "main", old):
+            assert sorted(path.name.split(".")[0] for path in (tree / "dpcn_med" / "__pycache__").glob("*.pyc")) == [
+                "__init__", "__main__"]
+
 
 class TestStageTime:
     def test_trees_alternate_and_each_stage_is_compared_with_the_first(self, tmp_path, monkeypatch):
