@@ -511,6 +511,14 @@ class TestErrors:
         with pytest.raises(InputError, match="fixed image: is 2-D"):
             register(sitk.Image([8, 8], sitk.sitkFloat32), mni_2mm())
 
+    def test_with_both_images_bad_the_fixed_one_is_named(self, tmp_path):
+        # The two are read at once; the error is the fixed image's, as when they were read one after the other.
+        (tmp_path / "cut.nii.gz").write_bytes(b"\x1f\x8b" + bytes(40))
+        with pytest.raises(InputNotFoundError, match="absent.nii.gz: not found"):
+            register(tmp_path / "absent.nii.gz", tmp_path / "cut.nii.gz")
+        with pytest.raises(InputError, match="cut.nii.gz"):
+            register(tmp_path / "cut.nii.gz", tmp_path / "absent.nii.gz")
+
     def test_images_in_memory_get_the_checks_of_files(self):
         complex_image = sitk.RealAndImaginaryToComplex(sitk.Cast(mni_2mm(), sitk.sitkFloat32),
                                                        sitk.Cast(mni_2mm(), sitk.sitkFloat32))
