@@ -19,10 +19,9 @@ import math
 import os
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING
 
 import numpy as np
 import SimpleITK as sitk
@@ -59,6 +58,7 @@ from dpcn_med.refine import (
 from dpcn_med.result import RegistrationResult, describe_transform  # noqa: F401  (public here too)
 from dpcn_med.solver import SolverConfig, StageTemperatures, solve
 from dpcn_med.solver.translation import phase_translation
+from dpcn_med.threads import side_by_side
 
 if TYPE_CHECKING:
     from dpcn_med.models import DPCN
@@ -66,7 +66,6 @@ if TYPE_CHECKING:
 ImageLike = str | os.PathLike | sitk.Image
 Progress = Callable[[str, float], None]
 """``progress(stage, fraction)``: the stage's name and the fraction of the whole job done, in ``[0, 1]``."""
-T = TypeVar("T")
 
 
 def _check_image_like(name: str, value: object) -> None:
@@ -241,24 +240,12 @@ class _Inputs:
     moving_mask_name: str
 
 
-def _side_by_side(fixed: Callable[[], T], moving: Callable[[], T]) -> tuple[T, T]:
-    """``(fixed(), moving())``, run in two threads at once; the fixed side's error, if any, is raised first.
-
-    Reading, checking and preprocessing an image let go of Python's lock for most of their time (decompression,
-    SimpleITK's filters, numpy): on the demo pair, reading took 0.20 s against 0.34 s one after the other, and
-    preprocessing 0.11 s against 0.16 s (docs/design_notes/registration.md, ``_side_by_side``).
-    """
-    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="dpcn-med-side") as pool:
-        futures = pool.submit(fixed), pool.submit(moving)
-        return futures[0].result(), futures[1].result()
-
-
 def _read_inputs(fixed: ImageLike, moving: ImageLike, fixed_mask: ImageLike | None, moving_mask: ImageLike | None,
                  clock: _Clock) -> _Inputs:
     """Step 1: read and check both images, at once, then both masks."""
     with clock.step("read", "reading", 0.0):
-        fixed_image, moving_image = _side_by_side(lambda: load_image(fixed, "fixed image"),
-                                                  lambda: load_image(moving, "moving image"))
+        fixed_image, moving_image = side_by_side(lambda: load_image(fixed, "fixed image"),
+                                                 lambda: load_image(moving, "moving image"))
         return _Inputs(fixed=fixed_image, moving=moving_image,
                        fixed_mask=_load_mask(fixed_mask, fixed_image, "fixed mask"),
                        moving_mask=_load_mask(moving_mask, moving_image, "moving mask"),
@@ -283,7 +270,7 @@ def _prepare_grids(inputs: _Inputs, options: _Options, clock: _Clock) -> _Grids:
     """Step 2: normalise both images (and refuse masks too small to refine, or modalities the model was not trained
     for), then resample them onto canonical cubes of ``2B`` voxels with one shared spacing."""
     with clock.step("preprocess", "preprocessing", 0.1):
-        fixed, moving = _side_by_side(
+        fixed, moving = side_by_side(
             lambda: prepare(inputs.fixed, modality=options.modalities[0], mask=inputs.fixed_mask,
                             config=options.preprocessing, mask_name=inputs.fixed_mask_name),
             lambda: prepare(inputs.moving, modality=options.modalities[1], mask=inputs.moving_mask,

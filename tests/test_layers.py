@@ -45,12 +45,13 @@ LAYERS: dict[str, int] = {
     # 1: the conventions and the files.
     "dpcn_med.geometry": 1,
     "dpcn_med.io": 1,
-    # 0: what everything may use: errors, argument checks, devices, and the version (set in dpcn_med/__init__.py
+    # 0: what everything may use: errors, argument checks, devices, two threads at once, and the version (set in dpcn_med/__init__.py
     # before it imports anything).
     "dpcn_med.errors": 0,
     "dpcn_med.arguments": 0,
     "dpcn_med.devices": 0,
     "dpcn_med.modalities": 0,
+    "dpcn_med.threads": 0,
     "dpcn_med.__version__": 0,
 }
 """Layer of each module (a package's entry covers its submodules: ``dpcn_med.io`` and ``dpcn_med.io.*`` alike). A
