@@ -152,7 +152,7 @@ def correlation_table(bandwidth: int, device: torch.device, dtype: torch.dtype) 
     betas = soft_colatitude(torch.arange(bandwidth, device=device, dtype=torch.float64), bandwidth)
     wanted = {degree: i for i, degree in enumerate(degrees)}
     table = torch.empty(rows * cols, bandwidth, len(degrees), device=device, dtype=dtype)
-    for degree, values in _recurrence(top, betas):
+    for degree, values in _recurrence(top, betas, columns=tuple(range(cols))):  # n >= 0 only: half the work
         if degree in wanted:
-            table[:, :, wanted[degree]] = values[:, :, top:].permute(1, 2, 0).reshape(rows * cols, bandwidth).to(dtype)
+            table[:, :, wanted[degree]] = values.permute(1, 2, 0).reshape(rows * cols, bandwidth).to(dtype)
     return table
