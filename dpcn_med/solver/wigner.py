@@ -1,4 +1,5 @@
-"""Wigner small-d functions by the Kostelec-Rockmore three-term recurrence in the degree.
+"""Wigner small-d functions by the Kostelec-Rockmore three-term recurrence in the degree, and the associated
+Legendre functions of the spherical harmonic transform, which are their column ``n = 0``.
 
 Convention: ``d^l_mn(beta) = <l m| exp(-i beta J_y) |l n>``, so that ``D^l_mn(R) = exp(-i m alpha) d^l_mn(beta)
 exp(-i n gamma)`` for ``R = Rz(alpha) Ry(beta) Rz(gamma)``. Tables are computed in float64 on the target device, cast
