@@ -15,12 +15,17 @@ U = TypeVar("U")
 
 
 def side_by_side(first: Callable[[], T], second: Callable[[], U]) -> tuple[T, U]:
-    """``(first(), second())``, run on two threads at once.
+    """``(first(), second())``: on two threads at once where this process runs torch on more than one thread, else
+    one after the other (a worker of ``dpcn-med register-batch --workers`` runs on one: ``dpcn_med.cluster``).
 
     Raises:
         What ``first`` raised, else what ``second`` raised: the order of a call of one after the other, whichever
         fails sooner.
     """
+    import torch  # here: the modules that call this import it already, and this layer need not
+
+    if torch.get_num_threads() < 2:
+        return first(), second()
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="dpcn-med-side") as pool:
         futures = pool.submit(first), pool.submit(second)
         return futures[0].result(), futures[1].result()
