@@ -84,6 +84,16 @@ def _recurrence(top: int, betas: Tensor, columns: tuple[int, ...] | None = None)
         yield degree, current
 
 
+def _wanted(degrees: tuple[int, ...], betas: Tensor, columns: tuple[int, ...] | None = None
+            ) -> Iterator[tuple[int, int, Tensor]]:
+    """``(i, l, d^l)`` for each wanted degree ``l = degrees[i]``, in increasing ``l``: :func:`_recurrence` run up to
+    the largest, with its ``columns``."""
+    wanted = {degree: index for index, degree in enumerate(degrees)}
+    for degree, values in _recurrence(max(degrees), betas, columns):
+        if degree in wanted:
+            yield wanted[degree], degree, values
+
+
 def wigner_d(degrees: tuple[int, ...], betas: Tensor) -> Tensor:
     """Wigner small-d matrices.
 
@@ -95,13 +105,10 @@ def wigner_d(degrees: tuple[int, ...], betas: Tensor) -> Tensor:
         ``(L, K, 2M + 1, 2M + 1)`` float64, ``M = max(degrees)``, entry ``[i, k, m + M, n + M] = d^l_mn(beta_k)`` for
         ``l = degrees[i]``; zero where ``|m|`` or ``|n|`` exceeds ``l``.
     """
-    wanted = {degree: index for index, degree in enumerate(degrees)}
-    top = max(degrees)
-    size = 2 * top + 1
+    size = 2 * max(degrees) + 1
     table = torch.zeros(len(degrees), betas.shape[0], size, size, device=betas.device, dtype=torch.float64)
-    for degree, values in _recurrence(top, betas):
-        if degree in wanted:
-            table[wanted[degree]] = values
+    for index, _, values in _wanted(degrees, betas):
+        table[index] = values
     return table
 
 
@@ -120,12 +127,9 @@ def legendre(degrees: tuple[int, ...], betas: Tensor) -> Tensor:
         ``(L, 2M + 1, K)`` float64, ``M = max(degrees)``, entry ``[i, m + M, k]`` for ``l = degrees[i]``; zero where
         ``|m| > l``.
     """
-    wanted = {degree: index for index, degree in enumerate(degrees)}
-    top = max(degrees)
-    table = torch.zeros(len(degrees), 2 * top + 1, betas.shape[0], device=betas.device, dtype=torch.float64)
-    for degree, values in _recurrence(top, betas, columns=(0,)):
-        if degree in wanted:
-            table[wanted[degree]] = values[..., 0].T * math.sqrt((2 * degree + 1) / (4 * math.pi))
+    table = torch.zeros(len(degrees), 2 * max(degrees) + 1, betas.shape[0], device=betas.device, dtype=torch.float64)
+    for index, degree, values in _wanted(degrees, betas, columns=(0,)):
+        table[index] = values[..., 0].T * math.sqrt((2 * degree + 1) / (4 * math.pi))
     return table
 
 
@@ -151,9 +155,7 @@ def correlation_table(bandwidth: int, device: torch.device, dtype: torch.dtype) 
     top = max(degrees)
     rows, cols = 2 * top + 1, top + 1
     betas = soft_colatitude(torch.arange(bandwidth, device=device, dtype=torch.float64), bandwidth)
-    wanted = {degree: i for i, degree in enumerate(degrees)}
     table = torch.empty(rows * cols, bandwidth, len(degrees), device=device, dtype=dtype)
-    for degree, values in _recurrence(top, betas, columns=tuple(range(cols))):  # n >= 0 only: half the work
-        if degree in wanted:
-            table[:, :, wanted[degree]] = values.permute(1, 2, 0).reshape(rows * cols, bandwidth).to(dtype)
+    for index, _, values in _wanted(degrees, betas, columns=tuple(range(cols))):  # n >= 0 only: half the work
+        table[:, :, index] = values.permute(1, 2, 0).reshape(rows * cols, bandwidth).to(dtype)
     return table
