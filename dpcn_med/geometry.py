@@ -233,19 +233,36 @@ def squared_distance_from_centre(sizes: tuple[int, ...], *, device: torch.device
         [-1 if a == axis else 1 for a in range(len(sizes))]) for axis, n in enumerate(sizes))
 
 
+def sample_points(volume: Tensor, grid: Tensor, *, mode: str = "bilinear", padding_mode: str = "zeros") -> Tensor:
+    """``grid_sample`` (``align_corners=True``) of one volume ``(1, C, D, H, W)`` at ``grid`` ``(M, 3)`` normalised
+    points ``(x, y, z)``: ``(C, M)``, the same values as one ``grid_sample`` call, bit for bit.
+
+    On the CPU the points are split into one chunk per torch thread, each sampled against a stride-0 view of the
+    volume (no copy): PyTorch's CPU ``grid_sample`` parallelises over the batch only (the measurements:
+    docs/design_notes/geometry.md). Differentiable in ``grid`` (and in ``volume``, whose gradient then sums over the
+    chunks)."""
+    count = len(grid)
+    chunks = torch.get_num_threads() if volume.device.type == "cpu" else 1
+    chunks = max(1, min(chunks, count))
+    if chunks == 1:
+        return F.grid_sample(volume, grid.reshape(1, 1, 1, count, 3), mode=mode, padding_mode=padding_mode,
+                             align_corners=True)[0, :, 0, 0]
+    per_chunk = -(-count // chunks)
+    if per_chunk * chunks != count:  # the last chunk padded with copies of the last point, dropped below
+        grid = torch.cat([grid, grid[-1:].expand(per_chunk * chunks - count, 3)])
+    values = F.grid_sample(volume.expand(chunks, *volume.shape[1:]), grid.reshape(chunks, 1, 1, per_chunk, 3),
+                           mode=mode, padding_mode=padding_mode, align_corners=True)
+    return values[:, :, 0, 0].transpose(0, 1).reshape(volume.shape[1], -1)[:, :count]
+
+
 def _grid_sample(volume: Tensor, grid: Tensor) -> Tensor:
     """``grid_sample`` (trilinear, zero outside) at normalised coordinates ``grid (B, *S, d)`` -> ``(B, C, *S)``."""
     dim = volume.dim() - 2
     batch, sample_shape = grid.shape[0], grid.shape[1:-1]
-    grid = grid.reshape(batch, -1, dim)
-    # PyTorch's CPU grid_sample parallelises over the batch only: for a single volume, split its points into one chunk
-    # per thread (measured 1.6x faster on two cores at 128^3) and sample them against a stride-0 view of the volume.
-    chunks = torch.get_num_threads() if volume.device.type == "cpu" and dim == 3 and batch == 1 else 1
-    chunks = chunks if grid.shape[1] % chunks == 0 else 1
-    grid = grid.reshape(batch * chunks, -1, *([1] * (dim - 1)), dim)
-    source = volume.expand(chunks, *volume.shape[1:]) if chunks > 1 else volume
-    values = F.grid_sample(source, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-    values = values.reshape(batch, chunks, volume.shape[1], -1).transpose(1, 2)
+    if batch == 1 and dim == 3:  # one volume: its points split over the CPU's threads
+        return sample_points(volume, grid.reshape(-1, dim)).reshape(1, volume.shape[1], *sample_shape)
+    grid = grid.reshape(batch, -1, *([1] * (dim - 1)), dim)
+    values = F.grid_sample(volume, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
     return values.reshape(batch, volume.shape[1], *sample_shape)
 
 

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from dpcn_med.geometry import axis_angle_to_matrix
+from dpcn_med.geometry import axis_angle_to_matrix, sample_points
 from dpcn_med.lc2 import MIN_WINDOW_SHARE, WINDOW, negative_lc2
 from dpcn_med.mutual_information import fixed_bins, negative_mutual_information
 
@@ -228,8 +228,7 @@ class _SmoothGradientSample(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, volume: Tensor, grid: Tensor) -> Tensor:
-        sampled = F.grid_sample(volume, grid.view(1, 1, 1, -1, 3), mode="bilinear", padding_mode="border",
-                                align_corners=True)[0, :, 0, 0]
+        sampled = sample_points(volume, grid, padding_mode="border")
         ctx.save_for_backward(sampled[1:])
         return sampled[0]
 
@@ -243,9 +242,9 @@ def _sample_normalised(image: Volume, grid: Tensor, mode: str) -> Tensor:
     poses, count = grid.shape[:2]
     if image.values.shape[1] == 4 and mode == "bilinear":
         return _SmoothGradientSample.apply(image.values, grid.reshape(-1, 3)).reshape(poses, count)
-    # One batch of K * N points: grid_sample wants as many input volumes as grids, and an expanded volume is copied.
-    return F.grid_sample(image.values[:, :1], grid.reshape(1, 1, 1, poses * count, 3), mode=mode,
-                         padding_mode="border", align_corners=True).reshape(poses, count)
+    # One batch of K * N points (split over the CPU's threads by sample_points).
+    values = sample_points(image.values[:, :1], grid.reshape(-1, 3), mode=mode, padding_mode="border")
+    return values.reshape(poses, count)
 
 
 def residual_matrices(parameters: Tensor, centre: np.ndarray, radius: float) -> Tensor:
@@ -319,8 +318,7 @@ class CorrelationLevel:
         poses = poses.float()
         mapped = self.points.unsqueeze(0) @ poses[:, :3, :3].transpose(1, 2) + poses[:, None, :3, 3]
         grid, valid = _normalised(self.other, mapped)
-        values = F.grid_sample(self.other.values, grid.reshape(1, 1, 1, -1, 3), mode="bilinear",
-                               padding_mode="border", align_corners=True).reshape(2, *valid.shape)
+        values = sample_points(self.other.values, grid.reshape(-1, 3), padding_mode="border").reshape(2, *valid.shape)
         if self.other_mask is not None:
             in_mask, inside = sample(self.other_mask, mapped.detach(), mode="nearest")
             valid = valid & inside & (in_mask > 0.5)

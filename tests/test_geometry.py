@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 import torch
+import torch.nn.functional as F
 
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import (
@@ -28,6 +29,7 @@ from dpcn_med.geometry import (
     rotation_y,
     rotation_z,
     sample,
+    sample_points,
     scale_and_rotation,
     similarity_transform,
     slicer_to_parent_ras,
@@ -199,6 +201,31 @@ class TestWarp:
         finally:
             torch.set_num_threads(threads)
         torch.testing.assert_close(chunked, single)
+
+    @pytest.mark.parametrize("count", [1, 2, 3, 1001])
+    @pytest.mark.parametrize(("mode", "padding"), [("bilinear", "zeros"), ("bilinear", "border"),
+                                                   ("nearest", "border")])
+    def test_sample_points_equal_one_grid_sample_over_threads(self, count, mode, padding):
+        # Over three threads the points fall into three chunks, the last one padded, sampled from a channels-last
+        # four-channel volume (the refinement's kind): the values and their gradient in the grid are one grid_sample's,
+        # bit for bit.
+        generator = torch.Generator().manual_seed(count)
+        volume = torch.randn(1, 4, 9, 11, 7, generator=generator).contiguous(memory_format=torch.channels_last_3d)
+        grid = (torch.rand(count, 3, generator=generator) * 2.4 - 1.2).requires_grad_()
+        reference = F.grid_sample(volume, grid.view(1, 1, 1, count, 3), mode=mode, padding_mode=padding,
+                                  align_corners=True)[0, :, 0, 0]
+        threads = torch.get_num_threads()
+        try:
+            torch.set_num_threads(3)
+            values = sample_points(volume, grid, mode=mode, padding_mode=padding)
+        finally:
+            torch.set_num_threads(threads)
+        assert values.shape == (4, count) and torch.equal(values, reference)
+        if mode == "bilinear":
+            weights = torch.randn(4, count, generator=generator)
+            expected, = torch.autograd.grad((reference * weights).sum(), grid)
+            found, = torch.autograd.grad((values * weights).sum(), grid)
+            assert torch.equal(found, expected)
 
     def test_sample_is_trilinear_and_zero_outside(self):
         volume = torch.arange(4 ** 3, dtype=torch.float64).reshape(1, 1, 4, 4, 4)
