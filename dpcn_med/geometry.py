@@ -242,11 +242,7 @@ def sample_points(volume: Tensor, grid: Tensor, *, mode: str = "bilinear", paddi
     docs/design_notes/geometry.md). Differentiable in ``grid`` (and in ``volume``, whose gradient then sums over the
     chunks)."""
     count = len(grid)
-    chunks = torch.get_num_threads() if volume.device.type == "cpu" else 1
-    chunks = max(1, min(chunks, count))
-    if chunks == 1:
-        return F.grid_sample(volume, grid.reshape(1, 1, 1, count, 3), mode=mode, padding_mode=padding_mode,
-                             align_corners=True)[0, :, 0, 0]
+    chunks = max(1, min(torch.get_num_threads() if volume.device.type == "cpu" else 1, count))
     per_chunk = -(-count // chunks)
     if per_chunk * chunks != count:  # the last chunk padded with copies of the last point, dropped below
         grid = torch.cat([grid, grid[-1:].expand(per_chunk * chunks - count, 3)])
