@@ -5,6 +5,7 @@ module                 step
 =====================  =================================================================
 ``spectrum``           1. apodised magnitude spectrum (translation invariance)
 ``entropy``            1. entropy images: more rotation candidates across contrasts
+``cooccurrence``       1. co-occurrence spectra: more rotation candidates across contrasts
 ``sphere``             2. radial aggregation onto the SOFT sphere (scale invariance)
 ``harmonics``          3a. spherical harmonic transform
 ``wigner``, ``so3``    3b. SO(3) correlation, peaks, soft arg-max and refinement (rotation)

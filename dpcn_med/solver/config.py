@@ -78,6 +78,10 @@ class SolverConfig:
             volume's candidates (0: by the volumes' peak alone). Not where :func:`dpcn_med.solver.solve` ranks on
             ``score_volumes`` (a model's translation features, whose ranking it trains). Why 1:
             docs/design_notes/solver.md.
+        cooccurrence_bins: 3-D only: when at least 2, the co-occurrence spectra (:mod:`dpcn_med.solver.cooccurrence`)
+            of both volumes, over this many soft intensity bins, go through every correlation the volumes go through,
+            and their peaks join the candidates as a source of their own (near-duplicates dropped within it; ranked
+            with the others). 0 (the default): none (measured: docs/design_notes/solver.md).
         peaks: rotation peaks carried through scale and translation (top-k).
         half_turns: also try each peak composed with the 180-degree turns about the grid axes (both frames).
         rotation_half_width: half-width, in grid cells, of the SO(3) soft arg-max window.
@@ -117,6 +121,7 @@ class SolverConfig:
     entropy_sigma: float = 1.0
     extra_entropy_bins: tuple[int, ...] = ()
     entropy_ranking_weight: float = 1.0
+    cooccurrence_bins: int = 0
     peaks: int = 4
     half_turns: bool = True
     rotation_half_width: int = 1
@@ -168,6 +173,10 @@ class SolverConfig:
             check_integer(f"extra_entropy_bins[{index}]", bins, minimum=2, maximum=256)
             for index, bins in enumerate(check_sequence("extra_entropy_bins", self.extra_entropy_bins,
                                                         nonempty=False)))
+        checked["cooccurrence_bins"] = check_integer("cooccurrence_bins", self.cooccurrence_bins, minimum=0,
+                                                     maximum=256)
+        if checked["cooccurrence_bins"] == 1:
+            raise InputError("cooccurrence_bins is 1: one bin co-occurs everywhere; expected 0 (none) or 2 to 256")
         checked["entropy_sigma"] = check_real("entropy_sigma", self.entropy_sigma, minimum=0.0, above=True,
                                               maximum=16.0)
         checked["entropy_ranking_weight"] = check_real("entropy_ranking_weight", self.entropy_ranking_weight,

@@ -44,6 +44,25 @@ def _smooth(volumes: Tensor, sigma: float) -> Tensor:
     return (matrix @ values.flatten(-2)).view(volumes.shape)  # z
 
 
+def soft_bins(volume: Tensor, bins: int) -> Tensor:
+    """Each voxel's membership of ``bins`` histogram bins spread evenly over its volume's own intensity range.
+
+    Args:
+        volume: ``(batch, N, N, N)`` real grids.
+        bins: number of bins; the lowest is centred on the volume's minimum, the highest on its maximum.
+
+    Returns:
+        ``(bins, batch, N, N, N)`` memberships (a Gaussian of :data:`BIN_WIDTH` bins around each voxel's position on
+        the bins' scale, normalised over the bins): non-negative, summing to 1 over the first axis.
+    """
+    flat = volume.flatten(1)
+    low = flat.amin(1).view(-1, 1, 1, 1)
+    span = (flat.amax(1).view(-1, 1, 1, 1) - low).clamp_min(torch.finfo(volume.dtype).tiny)
+    position = (volume - low) / span * (bins - 1)
+    centres = torch.arange(bins, device=volume.device, dtype=volume.dtype).view(-1, 1, 1, 1, 1)
+    return torch.softmax(-0.5 * ((position[None] - centres) / BIN_WIDTH) ** 2, dim=0)
+
+
 def entropy_image(volume: Tensor, bins: int, sigma: float) -> Tensor:
     """The local-histogram entropy of each voxel.
 
@@ -57,12 +76,6 @@ def entropy_image(volume: Tensor, bins: int, sigma: float) -> Tensor:
         A uniform region maps to the entropy of its soft bins alone (about 0.37 nats on a bin centre), a boundary
         between tissues to more.
     """
-    flat = volume.flatten(1)
-    low = flat.amin(1).view(-1, 1, 1, 1)
-    span = (flat.amax(1).view(-1, 1, 1, 1) - low).clamp_min(torch.finfo(volume.dtype).tiny)
-    position = (volume - low) / span * (bins - 1)
-    centres = torch.arange(bins, device=volume.device, dtype=volume.dtype).view(-1, 1, 1, 1, 1)
-    weights = torch.softmax(-0.5 * ((position[None] - centres) / BIN_WIDTH) ** 2, dim=0)  # (bins, batch, N, N, N)
-    histogram = _smooth(weights, sigma)
+    histogram = _smooth(soft_bins(volume, bins), sigma)
     histogram = histogram / histogram.sum(0, keepdim=True).clamp_min(torch.finfo(volume.dtype).tiny)
     return -(histogram * torch.log(histogram.clamp_min(torch.finfo(volume.dtype).tiny))).sum(0)

@@ -12,6 +12,7 @@ from torch import Tensor
 from dpcn_med.errors import InputError
 from dpcn_med.geometry import geodesic_distance, half_turns, warp
 from dpcn_med.solver.config import SolverConfig, StageTemperatures, override
+from dpcn_med.solver.cooccurrence import cooccurrence_spectrum
 from dpcn_med.solver.entropy import entropy_image
 from dpcn_med.solver.harmonics import isht, sht
 from dpcn_med.solver.phase_correlation import phase_correlation
@@ -169,7 +170,7 @@ def _spectra(fixed_volume: Tensor, moving_volume: Tensor, bandwidth: int, config
     """Steps 1-3a: magnitude spectra of ``(batch, N, N, N)`` volumes, their spheres per band, the spheres' harmonics
     (then, for each of ``config.extra_degree_two_weights``, the primary band's spheres and harmonics once more), and
     all of these again for the volumes' entropy images of ``config.entropy_bins`` and of each of
-    ``config.extra_entropy_bins``."""
+    ``config.extra_entropy_bins``, and for their co-occurrence spectra of ``config.cooccurrence_bins``."""
     directions = sphere_directions(bandwidth, device=fixed_volume.device, dtype=fixed_volume.dtype)
     weights = quadrature_weights(bandwidth, device=fixed_volume.device, dtype=fixed_volume.dtype)
     degrees = even_degrees(bandwidth)
@@ -188,9 +189,16 @@ def _spectra(fixed_volume: Tensor, moving_volume: Tensor, bandwidth: int, config
             entropy = images
         spheres, fixed_coeffs, moving_coeffs = (first + second for first, second in
                                                 zip((spheres, fixed_coeffs, moving_coeffs), more))
+    if config.cooccurrence_bins:  # proposals too, without a graph (as above)
+        with torch.no_grad():
+            more = _correlated(*(cooccurrence_spectrum(volume, config.cooccurrence_bins, config.taper)
+                                 for volume in (fixed_volume, moving_volume)), config, directions, weights, degrees)
+        spheres, fixed_coeffs, moving_coeffs = (first + second for first, second in
+                                                zip((spheres, fixed_coeffs, moving_coeffs), more))
     return _Spectra(fixed_magnitude=magnitudes[0], moving_magnitude=magnitudes[1], directions=directions,
                     weights=weights, degrees=degrees, spheres=spheres, fixed_coeffs=fixed_coeffs,
-                    moving_coeffs=moving_coeffs, entropy=entropy, sources=1 + len(sources))
+                    moving_coeffs=moving_coeffs, entropy=entropy,
+                    sources=1 + len(sources) + bool(config.cooccurrence_bins))
 
 
 def _correlated(fixed_magnitude: Tensor, moving_magnitude: Tensor, config: SolverConfig, directions: Tensor,

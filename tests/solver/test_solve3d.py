@@ -121,6 +121,8 @@ class TestSolverConfig:
         ("entropy_bins", -1, r"entropy_bins is -1; expected an integer >= 0 and <= 256"),
         ("extra_entropy_bins", (16, 1), r"extra_entropy_bins\[1\] is 1; expected an integer >= 2 and <= 256"),
         ("extra_entropy_bins", 16, r"extra_entropy_bins is 16 \(int\); expected a tuple"),
+        ("cooccurrence_bins", 1, r"cooccurrence_bins is 1: one bin co-occurs everywhere; expected 0"),
+        ("cooccurrence_bins", 300, r"cooccurrence_bins is 300; expected an integer >= 0 and <= 256"),
         ("entropy_sigma", 0.0, r"entropy_sigma is 0\.0; expected a finite number > 0 and <= 16"),
         ("entropy_ranking_weight", -0.5, r"entropy_ranking_weight is -0\.5; expected a finite number >= 0 and <= 16"),
         ("sphere_margin", float("inf"), r"sphere_margin is inf; expected a finite number >= 0"),
