@@ -16,8 +16,8 @@ like. Prints the tables and writes them under docs/, with a figure of success ag
 Variants of dpcn_med's defaults (with ``--methods dpcn`` for its row alone): ``--bandwidth``, ``--sphere-band LOW
 HIGH`` (one band only: :attr:`dpcn_med.solver.SolverConfig.sphere_band` without the extra bands),
 ``--degree-two-weight`` (:attr:`dpcn_med.solver.SolverConfig.degree_two_weight`), ``--entropy-bins``
-(:attr:`dpcn_med.solver.SolverConfig.entropy_bins`), ``--fill``
-(:attr:`dpcn_med.preprocess.Preprocessing.fill`).
+(:attr:`dpcn_med.solver.SolverConfig.entropy_bins`), ``--cooccurrence-bins``
+(:attr:`dpcn_med.solver.SolverConfig.cooccurrence_bins`), ``--fill`` (:attr:`dpcn_med.preprocess.Preprocessing.fill`).
 """
 
 from __future__ import annotations
@@ -280,6 +280,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="SolverConfig.degree_two_weight: the spheres' degree-2 harmonics' weight")
     parser.add_argument("--entropy-bins", type=int, default=SolverConfig.entropy_bins,
                         help="SolverConfig.entropy_bins: the entropy images' candidates (0: none)")
+    parser.add_argument("--cooccurrence-bins", type=int, default=SolverConfig.cooccurrence_bins,
+                        help="SolverConfig.cooccurrence_bins: the co-occurrence spectra's candidates (0: none)")
     parser.add_argument("--fill", type=float, default=Preprocessing.fill, help="canonical-grid fill")
     parser.add_argument("--label", default="dpcn_med learning-free (CLI defaults)",
                         help="the dpcn row's label, e.g. the variant")
@@ -297,7 +299,8 @@ def run_all(args: argparse.Namespace, methods: list[str]) -> list[dict]:
     """Every case of ``args`` with ``methods``, each row labelled (``args.label`` for dpcn_med's), also written to the
     per-registration CSV beside ``args.output`` for ``--combine``."""
     bands = {"sphere_band": tuple(args.sphere_band), "extra_sphere_bands": ()} if args.sphere_band else {}
-    solver = SolverConfig(degree_two_weight=args.degree_two_weight, entropy_bins=args.entropy_bins, **bands)
+    solver = SolverConfig(degree_two_weight=args.degree_two_weight, entropy_bins=args.entropy_bins,
+                          cooccurrence_bins=args.cooccurrence_bins, **bands)
     settings = {"bandwidth": args.bandwidth, "solver": solver, "preprocessing": Preprocessing(fill=args.fill)}
     rows = [{**row, "label": args.label if row["method"] == "dpcn" else METHODS[row["method"]][0]}
             for case in args.cases
@@ -329,7 +332,8 @@ def main(argv: list[str] | None = None) -> int:
             "cases": "--cases", "overlaps": "--overlaps", "trials": "--trials", "methods": "--methods",
             "baseline_trials": "--baseline-trials", "seed": "--seed", "bandwidth": "--bandwidth",
             "sphere_band": "--sphere-band", "degree_two_weight": "--degree-two-weight",
-            "entropy_bins": "--entropy-bins", "fill": "--fill", "label": "--label"})
+            "entropy_bins": "--entropy-bins", "cooccurrence_bins": "--cooccurrence-bins", "fill": "--fill",
+            "label": "--label"})
     installed = available_methods()
     methods = [m for m in args.methods if m in installed]
     missing = [] if args.combine else [m for m in args.methods if m not in installed]
