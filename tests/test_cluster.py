@@ -114,12 +114,14 @@ class TestLocalCluster:
         output = tmp_path / "out"
         finished = []
 
-        def interrupt_after_one(job, row, error) -> None:  # two pairs running then, the fourth waiting
+        def interrupt_after_one(job, row, error) -> None:  # the next pair running then, the other two waiting
             finished.append(job.id)
             raise KeyboardInterrupt
 
+        # One worker: with two, the first two pairs finish about together, both workers take the last two at once,
+        # and on a loaded machine both could finish before the cancel reaches them (seen on CI: all four written).
         with pytest.raises(KeyboardInterrupt):
-            run_batch(plan_batch(pairs, output, settings=SETTINGS), on_row=interrupt_after_one, workers=2)
+            run_batch(plan_batch(pairs, output, settings=SETTINGS), on_row=interrupt_after_one, workers=1)
         assert set(_statuses(output)) == set(finished)
         # A pair that a worker was finishing as the client stopped may be written too; either way, once.
         done = {f"p{i}" for i in range(4) if (output / f"p{i}" / "report.json").exists()}
