@@ -37,7 +37,7 @@ REQUIRED_KEYS = ("bandwidth", "channels", "residual_units", "modalities", "share
 """Keys a saved model config must hold: they define the network and its grids, so a default would describe another
 model than the weights (``solver`` may be absent: a config saved before it existed gets today's defaults)."""
 SOLVER_FIELDS_ADDED = {"extra_degree_two_weights": (), "entropy_bins": 0, "extra_entropy_bins": (),
-                      "cooccurrence_bins": 0}
+                       "cooccurrence_bins": 0}
 """:class:`SolverConfig` fields added after models began recording their solver, each with the value a model saved
 without it ran with: a saved model keeps registering as it was trained."""
 MAX_CHANNELS = 1024

@@ -177,28 +177,25 @@ def _spectra(fixed_volume: Tensor, moving_volume: Tensor, bandwidth: int, config
     magnitudes = (magnitude_spectrum(fixed_volume, 3, config.taper), magnitude_spectrum(moving_volume, 3, config.taper))
     spheres, fixed_coeffs, moving_coeffs = _correlated(*magnitudes, config, directions, weights, degrees)
     entropy = None
-    sources = [bins for bins in (config.entropy_bins, *config.extra_entropy_bins) if bins]
-    for bins in sources:  # why: docs/design_notes/solver.md
-        # Proposals only, without a graph: no loss reaches them but through the choice, which is made under no_grad,
-        # and their graph would double a training step's time and memory.
-        with torch.no_grad():
+    proposals = []  # (fixed, moving) spectra of each further source of candidates; why: docs/design_notes/solver.md
+    # Proposals only, without a graph: no loss reaches them but through the choice, which is made under no_grad, and
+    # their graph would double a training step's time and memory.
+    with torch.no_grad():
+        for bins in filter(None, (config.entropy_bins, *config.extra_entropy_bins)):
             images = tuple(entropy_image(volume, bins, config.entropy_sigma) for volume in (fixed_volume, moving_volume))
-            more = _correlated(*(magnitude_spectrum(image, 3, config.taper) for image in images), config,
-                               directions, weights, degrees)
-        if entropy is None and config.entropy_bins:  # the first source ranks beside the volumes
-            entropy = images
-        spheres, fixed_coeffs, moving_coeffs = (first + second for first, second in
-                                                zip((spheres, fixed_coeffs, moving_coeffs), more))
-    if config.cooccurrence_bins:  # proposals too, without a graph (as above)
-        with torch.no_grad():
-            more = _correlated(*(cooccurrence_spectrum(volume, config.cooccurrence_bins, config.taper)
-                                 for volume in (fixed_volume, moving_volume)), config, directions, weights, degrees)
-        spheres, fixed_coeffs, moving_coeffs = (first + second for first, second in
-                                                zip((spheres, fixed_coeffs, moving_coeffs), more))
+            if entropy is None and config.entropy_bins:  # the first source ranks beside the volumes
+                entropy = images
+            proposals.append(tuple(magnitude_spectrum(image, 3, config.taper) for image in images))
+        if config.cooccurrence_bins:
+            proposals.append(tuple(cooccurrence_spectrum(volume, config.cooccurrence_bins, config.taper)
+                                   for volume in (fixed_volume, moving_volume)))
+        for fixed_spectrum, moving_spectrum in proposals:
+            more = _correlated(fixed_spectrum, moving_spectrum, config, directions, weights, degrees)
+            spheres, fixed_coeffs, moving_coeffs = (first + second for first, second in
+                                                    zip((spheres, fixed_coeffs, moving_coeffs), more))
     return _Spectra(fixed_magnitude=magnitudes[0], moving_magnitude=magnitudes[1], directions=directions,
                     weights=weights, degrees=degrees, spheres=spheres, fixed_coeffs=fixed_coeffs,
-                    moving_coeffs=moving_coeffs, entropy=entropy,
-                    sources=1 + len(sources) + bool(config.cooccurrence_bins))
+                    moving_coeffs=moving_coeffs, entropy=entropy, sources=1 + len(proposals))
 
 
 def _correlated(fixed_magnitude: Tensor, moving_magnitude: Tensor, config: SolverConfig, directions: Tensor,
